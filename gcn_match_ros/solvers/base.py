@@ -1,0 +1,270 @@
+"""One interface for every multi-view matching method.
+
+A solver turns a :class:`~gcn_match_ros.problem.Problem` into a
+:class:`~gcn_match_ros.problem.Result` in three timed steps:
+
+1. build the correspondence graph from the descriptors (``graph_config``),
+2. ``match(problem, graph)`` — the method itself — returning :class:`SoftMatches`
+   (sparse scores between keypoints of different views) and optionally its own tracks,
+3. round the scores to cycle-consistent tracks (:func:`~gcn_match_ros.rounding.greedy_tracks`)
+   unless the method rounded itself.
+
+The node, the benchmarks and the command line only use :meth:`Solver.solve`, so any
+registered method can be selected by name, with settings as ``name:key=value,...``.
+"""
+from __future__ import annotations
+
+import abc
+import dataclasses
+import time
+from typing import Any, ClassVar, Dict, Optional, Type
+
+import numpy as np
+import torch
+
+from ..graph import CorrespondenceGraph, GraphConfig, build_graph
+from ..problem import Problem, Result
+from ..rounding import greedy_tracks
+
+__all__ = ["SoftMatches", "Solver", "SolverConfig", "register", "get_solver", "available_solvers",
+           "parse_method", "GRAPH_PRESETS"]
+
+#: Named input graphs; solver settings select one with ``graph=<name>``.
+GRAPH_PRESETS: Dict[str, GraphConfig] = {
+    "knn4": GraphConfig.paper(4),
+    "knn8": GraphConfig.paper(8),
+    "mutual": GraphConfig.mutual_nn(),
+    "ratio0.8": GraphConfig.mutual_nn(0.8),
+    "mutual-soft": GraphConfig(k=1, mutual=True, rescale="none"),
+    "ratio0.8-soft": GraphConfig(k=1, mutual=True, ratio=0.8, rescale="none"),
+}
+
+
+@dataclasses.dataclass
+class SoftMatches:
+    """Soft similarity between keypoints of different views, stored sparsely.
+
+    Shapes:
+        rows, cols: (M,) int64 global keypoint indices with rows < cols, different views.
+        scores: (M,) float32 in [0, 1].
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    scores: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.rows = np.asarray(self.rows, np.int64)
+        self.cols = np.asarray(self.cols, np.int64)
+        self.scores = np.clip(np.asarray(self.scores, np.float32), 0.0, 1.0)
+        if not (self.rows.shape == self.cols.shape == self.scores.shape and self.rows.ndim == 1):
+            raise ValueError(f"SoftMatches: rows {self.rows.shape}, cols {self.cols.shape} and "
+                             f"scores {self.scores.shape} must be equal 1-D shapes")
+
+    @classmethod
+    def from_graph(cls, graph: CorrespondenceGraph, values: Optional[np.ndarray] = None,
+                   floor: float = 0.0) -> "SoftMatches":
+        """Scores on the graph's edges (``values`` per stored edge, default its weights)."""
+        r, c, pos = graph.upper_pairs()
+        v = (graph.weights if values is None else np.asarray(values))[pos]
+        keep = v > floor
+        return cls(r[keep], c[keep], v[keep])
+
+    @classmethod
+    def from_dense(cls, scores: np.ndarray, view_offsets: np.ndarray, floor: float = 0.01) -> "SoftMatches":
+        """Entries above ``floor`` of a dense (N, N) score matrix, cross-view upper triangle only."""
+        s = np.asarray(scores)
+        r_list, c_list, v_list = [], [], []
+        V = len(view_offsets) - 1
+        for i in range(V):
+            for j in range(i + 1, V):
+                blk = s[view_offsets[i]:view_offsets[i + 1], view_offsets[j]:view_offsets[j + 1]]
+                a, b = np.nonzero(blk > floor)
+                r_list.append(a + view_offsets[i])
+                c_list.append(b + view_offsets[j])
+                v_list.append(blk[a, b])
+        return cls._concat(r_list, c_list, v_list)
+
+    @classmethod
+    def from_embedding(cls, emb, view_offsets: np.ndarray, floor: float = 0.01,
+                       top_k: Optional[int] = 8) -> "SoftMatches":
+        """Scores (E Eᵀ)_ab between views, one view-pair block at a time (never N×N).
+
+        Keeps entries above ``floor`` that are among the ``top_k`` of their row or column
+        in that block (``None`` keeps every entry above the floor).
+
+        Shapes: emb (N, d) numpy or torch.
+        """
+        e = torch.as_tensor(emb, dtype=torch.float32)
+        r_list, c_list, v_list = [], [], []
+        V = len(view_offsets) - 1
+        for i in range(V):
+            ei = e[view_offsets[i]:view_offsets[i + 1]]
+            for j in range(i + 1, V):
+                ej = e[view_offsets[j]:view_offsets[j + 1]]
+                if ei.shape[0] == 0 or ej.shape[0] == 0:
+                    continue
+                blk = ei @ ej.T
+                mask = blk > floor
+                if top_k is not None:
+                    mask &= _top_k_mask(blk, top_k)
+                a, b = torch.nonzero(mask, as_tuple=True)
+                r_list.append(a.numpy() + view_offsets[i])
+                c_list.append(b.numpy() + view_offsets[j])
+                v_list.append(blk[a, b].numpy())
+        return cls._concat(r_list, c_list, v_list)
+
+    @classmethod
+    def _concat(cls, r_list, c_list, v_list) -> "SoftMatches":
+        if not r_list:
+            return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+        return cls(np.concatenate(r_list), np.concatenate(c_list), np.concatenate(v_list))
+
+
+def _top_k_mask(blk: torch.Tensor, k: int) -> torch.Tensor:
+    """Entries among the k largest of their row or of their column."""
+    mask = torch.zeros_like(blk, dtype=torch.bool)
+    kr, kc = min(k, blk.shape[1]), min(k, blk.shape[0])
+    mask.scatter_(1, torch.topk(blk, kr, dim=1).indices, True)
+    mask.scatter_(0, torch.topk(blk, kc, dim=0).indices, True)
+    return mask
+
+
+@dataclasses.dataclass
+class SolverConfig:
+    """Settings every solver has.
+
+    Attributes:
+        graph: name of the input graph in :data:`GRAPH_PRESETS`.
+        threshold: pairs scoring below it are not merged into tracks.
+    """
+
+    graph: str = "ratio0.8"
+    threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.graph not in GRAPH_PRESETS:
+            raise ValueError(f"unknown graph '{self.graph}'; choose one of {sorted(GRAPH_PRESETS)}")
+        if not 0.0 <= self.threshold <= 1.0:
+            raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
+
+
+class Solver(abc.ABC):
+    """Base class of all methods; subclasses set ``name``, ``Config`` and implement :meth:`match`."""
+
+    name: ClassVar[str]
+    Config: ClassVar[Type[SolverConfig]] = SolverConfig
+
+    def __init__(self, config: Optional[SolverConfig] = None, **settings: Any) -> None:
+        if config is not None and settings:
+            raise ValueError("give either a config or keyword settings, not both")
+        self.config = config if config is not None else _build_config(self.Config, settings)
+
+    @property
+    def graph_config(self) -> GraphConfig:
+        return GRAPH_PRESETS[self.config.graph]
+
+    def describe(self) -> str:
+        """``name:key=value,...`` for every setting that differs from the default."""
+        default = self.Config()
+        diff = [f"{f.name}={getattr(self.config, f.name)}" for f in dataclasses.fields(self.config)
+                if getattr(self.config, f.name) != getattr(default, f.name)]
+        return self.name + (":" + ",".join(diff) if diff else "")
+
+    @abc.abstractmethod
+    def match(self, problem: Problem, graph: CorrespondenceGraph):
+        """Run the method on one graph.
+
+        Returns:
+            (SoftMatches, track or None): scores between keypoints of different views, and
+            the method's own (N,) tracks if it rounds itself (None: the shared greedy rounding).
+        """
+
+    def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None) -> Result:
+        """Graph build (unless ``graph`` is given, e.g. a synthetic noisy graph) + match + rounding, timed."""
+        start = time.perf_counter()
+        if graph is None:
+            graph = build_graph(problem, self.graph_config)
+        soft, track = self.match(problem, graph)
+        if track is None:
+            track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
+                                  soft.scores, self.config.threshold)
+        seconds = time.perf_counter() - start
+        return Result(track=track, pair_rows=soft.rows, pair_cols=soft.cols, pair_scores=soft.scores,
+                      seconds=seconds, method=self.describe())
+
+
+_REGISTRY: Dict[str, Type[Solver]] = {}
+
+
+def register(cls: Type[Solver]) -> Type[Solver]:
+    """Class decorator adding a solver to the registry under ``cls.name``."""
+    if cls.name in _REGISTRY:
+        raise ValueError(f"solver '{cls.name}' registered twice")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def available_solvers() -> list:
+    return sorted(_REGISTRY)
+
+
+def parse_method(spec: str):
+    """``"matchals:iters=50,graph=mutual"`` -> ("matchals", {"iters": "50", "graph": "mutual"})."""
+    name, _, rest = spec.partition(":")
+    settings = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise ValueError(f"method '{spec}': setting '{item}' is not key=value")
+        settings[key.strip()] = value.strip()
+    return name.strip(), settings
+
+
+def get_solver(spec: str, **settings: Any) -> Solver:
+    """A solver from ``name`` or ``name:key=value,...`` (string values are converted to the field types)."""
+    name, parsed = parse_method(spec)
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown method '{name}'; available: {', '.join(available_solvers())}")
+    parsed.update(settings)
+    return _REGISTRY[name](**parsed)
+
+
+def _build_config(config_cls: Type[SolverConfig], settings: Dict[str, Any]) -> SolverConfig:
+    fields = {f.name: f for f in dataclasses.fields(config_cls)}
+    kwargs = {}
+    for key, value in settings.items():
+        if key not in fields:
+            raise ValueError(f"unknown setting '{key}' for {config_cls.__name__}; "
+                             f"known: {', '.join(sorted(fields))}")
+        kwargs[key] = _convert(value, fields[key], config_cls)
+    return config_cls(**kwargs)
+
+
+def _field_kind(field: dataclasses.Field) -> type:
+    """The scalar type a setting takes: from its default, else from its annotation."""
+    if field.default not in (dataclasses.MISSING, None):
+        return type(field.default)
+    annotation = str(field.type)
+    for kind in (bool, int, float):
+        if kind.__name__ in annotation:
+            return kind
+    return str
+
+
+def _convert(value: Any, field: dataclasses.Field, config_cls) -> Any:
+    """Read a command-line string as the setting's type ("none" for optional settings)."""
+    if not isinstance(value, str):
+        return value
+    kind = _field_kind(field)
+    if value.lower() == "none" and field.default is None:
+        return None
+    try:
+        if kind is bool:
+            if value.lower() not in ("1", "0", "true", "false", "yes", "no"):
+                raise ValueError(value)
+            return value.lower() in ("1", "true", "yes")
+        return kind(value)
+    except ValueError:
+        raise ValueError(f"setting '{field.name}' of {config_cls.__name__}: cannot read '{value}' "
+                         f"as {kind.__name__}") from None

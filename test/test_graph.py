@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from gcn_match_ros.graph import GraphConfig, build_graph, normalize_descriptors
+from gcn_match_ros.problem import Problem
+
+from conftest import permuted_views_problem
+
+
+def _dense_reference(problem, k):
+    """The paper's construction with dense matrices, for comparison on small problems."""
+    d = normalize_descriptors(problem.descriptors)
+    s = d @ d.T
+    view = problem.view_index
+    cross = view[:, None] != view[None, :]
+    lo, hi = s[cross].min(), s[cross].max()
+    s = (s - lo) / (hi - lo)
+    a = np.zeros_like(s)
+    offs = problem.view_offsets
+    for i in range(problem.n_views):
+        for j in range(problem.n_views):
+            if i == j:
+                continue
+            blk = s[offs[i]:offs[i + 1], offs[j]:offs[j + 1]]
+            top = np.argsort(-blk, axis=1)[:, :k]
+            for r, cs in enumerate(top):
+                a[offs[i] + r, offs[j] + cs] = blk[r, cs]
+    return np.maximum(a, a.T)
+
+
+@pytest.mark.parametrize("k", [1, 2, 4])
+def test_paper_graph_matches_dense_construction(k):
+    p = permuted_views_problem(n_views=4, n_points=9, noise=0.8, seed=3)
+    g = build_graph(p, GraphConfig.paper(k))
+    np.testing.assert_allclose(g.adjacency().toarray(), _dense_reference(p, k), atol=1e-6)
+
+
+def test_graph_is_symmetric_cross_view_and_sorted():
+    p = permuted_views_problem(n_views=3, n_points=10, noise=0.5)
+    g = build_graph(p)
+    a = g.adjacency().toarray()
+    np.testing.assert_array_equal(a, a.T)
+    view = p.view_index
+    assert np.all(view[g.rows] != view[g.cols])
+    assert np.all(np.diff(g.rows * g.n_nodes + g.cols) > 0)
+    assert g.weights.min() >= 0 and g.weights.max() <= 1
+
+
+def test_mutual_nn_on_noiseless_views_gives_exactly_the_true_pairs():
+    p = permuted_views_problem(n_views=3, n_points=15)
+    g = build_graph(p, GraphConfig.mutual_nn())
+    r, c, _ = g.upper_pairs()
+    assert np.all(p.gt_track[r] == p.gt_track[c])
+    assert r.size == 3 * 15
+    assert np.all(g.weights == 1)
+
+
+def test_ratio_test_and_floor_select_subsets():
+    p = permuted_views_problem(n_views=3, n_points=30, noise=1.0, seed=1)
+    full = build_graph(p, GraphConfig(k=1, mutual=True))
+    ratio = build_graph(p, GraphConfig(k=1, mutual=True, ratio=0.7))
+    floor = build_graph(p, GraphConfig(k=1, mutual=True, min_similarity=0.8))
+    key = lambda g: set(zip(g.rows.tolist(), g.cols.tolist()))  # noqa: E731
+    assert key(ratio) < key(full) and key(floor) <= key(full)
+    assert np.all(ratio.ratio < 0.7)
+
+
+def test_empty_views_and_single_keypoints():
+    p = Problem(view_offsets=[0, 0, 1, 3], keypoints=np.zeros((3, 2)), descriptors=np.eye(3, 4))
+    g = build_graph(p)
+    assert g.n_nodes == 3 and np.all(p.view_index[g.rows] != p.view_index[g.cols])
+    single = Problem(view_offsets=[0, 2], keypoints=np.zeros((2, 2)), descriptors=np.eye(2))
+    assert build_graph(single).n_edges == 0
+
+
+def test_edges_grow_linearly_not_quadratically():
+    p = permuted_views_problem(n_views=4, n_points=400, noise=0.3, dim=32)
+    g = build_graph(p, GraphConfig.paper(4))
+    assert g.n_edges <= 2 * 4 * 3 * 400 * 4  # at most k per row per other view, both directions
+
+
+def test_bad_config_is_refused():
+    with pytest.raises(ValueError, match="k must"):
+        GraphConfig(k=0)
+    with pytest.raises(ValueError, match="ratio"):
+        GraphConfig(ratio=1.5)

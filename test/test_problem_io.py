@@ -1,0 +1,83 @@
+import numpy as np
+import pytest
+
+from gcn_match_ros.problem import (FormatError, Problem, Result, load_problem, load_result, save_problem,
+                                   save_result)
+
+from conftest import permuted_views_problem, reference_problem_path
+
+
+def _arrays(problem: Problem) -> dict:
+    return {k: getattr(problem, k) for k in ("view_offsets", "keypoints", "descriptors", "gt_track")}
+
+
+def test_round_trip(tmp_path):
+    p = permuted_views_problem()
+    p.K = np.tile(np.eye(3), (3, 1, 1))
+    save_problem(p, tmp_path / "p.npz")
+    q = load_problem(tmp_path / "p.npz")
+    for key in ("view_offsets", "keypoints", "descriptors", "gt_track", "K"):
+        np.testing.assert_array_equal(getattr(p, key), getattr(q, key))
+    assert q.descriptors.dtype == np.float32 and q.view_offsets.dtype == np.int64 and q.K.dtype == np.float64
+    assert q.name == "p"
+
+
+def test_reference_problem_loads():
+    p = load_problem(reference_problem_path())
+    assert p.n_views == 3 and p.gt_track is not None and p.n_keypoints == p.view_offsets[-1]
+
+
+@pytest.mark.parametrize("change, key", [
+    (lambda a: a.pop("descriptors"), "descriptors"),
+    (lambda a: a.update(keypoints=np.zeros((5, 3), np.float32)), "keypoints"),
+    (lambda a: a.update(view_offsets=np.array([0, 5, 4])), "view_offsets"),
+    (lambda a: a.update(gt_track=np.zeros(7, np.int64)), "gt_track"),
+    (lambda a: a.update(gt_track=np.full(36, -3)), "gt_track"),
+    (lambda a: a.update(descriptors=np.full((36, 16), np.nan, np.float32)), "descriptors"),
+    (lambda a: a.update(keypoints=np.array(["x"] * 72).reshape(36, 2)), "keypoints"),
+    (lambda a: a.update(K=np.zeros((2, 3, 3))), "K"),
+])
+def test_malformed_files_name_the_key(tmp_path, change, key):
+    arrays = _arrays(permuted_views_problem())
+    change(arrays)
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(FormatError, match=f"'{key}'"):
+        load_problem(tmp_path / "bad.npz")
+
+
+def test_pickled_and_garbage_files_are_refused(tmp_path):
+    np.savez(tmp_path / "obj.npz", view_offsets=np.array([0, 1], dtype=object),
+             keypoints=np.zeros((1, 2)), descriptors=np.zeros((1, 2)))
+    with pytest.raises(FormatError):
+        load_problem(tmp_path / "obj.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(FormatError, match="not a readable"):
+        load_problem(tmp_path / "junk.npz")
+    with pytest.raises(FormatError, match="no such file"):
+        load_problem(tmp_path / "missing.npz")
+
+
+def test_result_round_trip_and_validation(tmp_path):
+    p = permuted_views_problem(n_views=2, n_points=3)
+    r = Result(track=[0, 1, -1, 0, 1, -1], pair_rows=[0, 1], pair_cols=[3, 4], pair_scores=[0.9, 0.8],
+               seconds=0.5, method="x:y=1")
+    r.validate_against(p)
+    save_result(r, tmp_path / "r.npz")
+    q = load_result(tmp_path / "r.npz")
+    assert q.method == "x:y=1" and q.seconds == 0.5
+    np.testing.assert_array_equal(q.track, r.track)
+    with pytest.raises(FormatError, match="pair_rows"):
+        Result(track=[0], pair_rows=[3], pair_cols=[1], pair_scores=[0.1])
+    bad = Result(track=[0, 0, -1, -1, -1, -1], pair_rows=[], pair_cols=[], pair_scores=[])
+    with pytest.raises(FormatError, match="cycle-consistent"):
+        bad.validate_against(p)
+    same_view = Result(track=[-1] * 6, pair_rows=[0], pair_cols=[1], pair_scores=[0.5])
+    with pytest.raises(FormatError, match="different views"):
+        same_view.validate_against(p)
+
+
+def test_subset_views():
+    p = permuted_views_problem(n_views=4, n_points=5)
+    q = p.subset_views([2, 0])
+    assert q.n_views == 2 and q.n_keypoints == 10
+    np.testing.assert_array_equal(q.descriptors[:5], p.descriptors[10:15])
