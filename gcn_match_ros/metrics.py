@@ -20,7 +20,7 @@ import numpy as np
 from .problem import Problem, Result
 from .rounding import tracks_to_pairs
 
-__all__ = ["score_result", "average_precision", "reference_rows", "count_pairs", "mean_scores",
+__all__ = ["score_result", "average_precision", "pr_curve", "scored_pairs", "reference_rows", "count_pairs", "mean_scores",
            "SCORE_KEYS"]
 
 SCORE_KEYS = ("P", "R", "F1", "AP", "same_sim", "diff_sim", "L1", "L2", "seconds")
@@ -54,30 +54,48 @@ def _pair_truth(gt: np.ndarray, view_index: np.ndarray, rows: np.ndarray, cols: 
     return scored, truth
 
 
+def pr_curve(scores: np.ndarray, truth: np.ndarray, n_true: int, n_pairs: int):
+    """Precision and recall at every distinct score threshold, highest first; pairs not listed
+    score 0 (so the last point has recall 1 when n_true > 0).
+
+    Args:
+        scores, truth: (M,) listed pairs' scores and whether each is true.
+        n_true: true pairs in total (listed or not); n_pairs: labelled pairs in total.
+    Returns:
+        (precision, recall, thresholds), each (T,).
+    """
+    listed_true = int(truth.sum())
+    s = np.concatenate([np.asarray(scores, np.float64), [0.0]])
+    tp_w = np.concatenate([truth.astype(np.float64), [n_true - listed_true]])
+    fp_w = np.concatenate([(~truth).astype(np.float64), [n_pairs - n_true - (truth.size - listed_true)]])
+    order = np.argsort(-s, kind="stable")
+    s, tp_w, fp_w = s[order], tp_w[order], fp_w[order]
+    last_of_group = np.r_[s[1:] != s[:-1], True]  # ties form one threshold
+    tp = np.cumsum(tp_w)[last_of_group]
+    fp = np.cumsum(fp_w)[last_of_group]
+    precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1e-300), 1.0)
+    recall = tp / max(n_true, 1)
+    return precision, recall, s[last_of_group]
+
+
 def average_precision(scores: np.ndarray, truth: np.ndarray, n_true: int, n_pairs: int) -> float:
     """Area under the precision–recall curve, pairs not listed scoring 0.
 
     AP = Σ_k (R_k − R_{k−1}) P_k over distinct score thresholds (ties form one step), as
     scikit-learn's ``average_precision_score`` on the full pair list would give.
-
-    Args:
-        scores, truth: (M,) listed pairs' scores and whether each is true.
-        n_true: true pairs in total (listed or not); n_pairs: labelled pairs in total.
     """
     if n_true == 0:
         return float("nan")
-    listed_true = int(truth.sum())
-    s = np.concatenate([scores, [0.0]])
-    tp_w = np.concatenate([truth.astype(np.float64), [n_true - listed_true]])
-    fp_w = np.concatenate([(~truth).astype(np.float64), [n_pairs - n_true - (truth.size - listed_true)]])
-    order = np.argsort(-s, kind="stable")
-    s, tp_w, fp_w = s[order], tp_w[order], fp_w[order]
-    last_of_group = np.r_[s[1:] != s[:-1], True]
-    tp = np.cumsum(tp_w)[last_of_group]
-    fp = np.cumsum(fp_w)[last_of_group]
-    precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1e-300), 1.0)
-    recall = tp / n_true
+    precision, recall, _ = pr_curve(scores, truth, n_true, n_pairs)
     return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+
+
+def scored_pairs(problem: Problem, result: Result):
+    """The result's listed pairs that are scored: (scores, truth, n_true, n_pairs)."""
+    view = problem.view_index
+    n_pairs, n_true = count_pairs(problem.gt_track, view)
+    scored, truth = _pair_truth(problem.gt_track, view, result.pair_rows, result.pair_cols)
+    return result.pair_scores[scored].astype(np.float64), truth[scored], n_true, n_pairs
 
 
 def score_result(problem: Problem, result: Result) -> Dict[str, float]:
@@ -97,9 +115,7 @@ def score_result(problem: Problem, result: Result) -> Dict[str, float]:
     recall = tp / n_true if n_true else float("nan")
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
 
-    scored, truth = _pair_truth(gt, view, result.pair_rows, result.pair_cols)
-    s = result.pair_scores[scored].astype(np.float64)
-    t = truth[scored]
+    s, t, _, _ = scored_pairs(problem, result)
     ap = average_precision(s, t, n_true, n_pairs)
     same = float(s[t].sum() / n_true) if n_true else float("nan")
     n_false = n_pairs - n_true

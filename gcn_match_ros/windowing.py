@@ -1,0 +1,286 @@
+"""Group camera frames into matching windows — the same way online (node) and offline (trainer).
+
+A *window* holds at most one frame per camera, all within ``sync_tolerance`` seconds of
+each other. Windows are decided by image stamps alone, never by arrival time, so
+replaying a bag into the node and reading the same bag in the trainer give identical
+windows.
+
+Policy (:class:`WindowAssembler`):
+- frames are validated (:func:`validate_frame`); bad ones are dropped and counted by reason;
+- per camera, frames must arrive in stamp order (older ones: ``out_of_order``) and not lie
+  far in the future of the caller's clock (``future``); buffers are bounded (``overflow``);
+- the window is anchored at the oldest buffered frame. It is emitted as soon as every
+  camera has a frame within the tolerance, or — when some camera is late or silent — once
+  a frame newer than anchor + tolerance + ``max_delay`` has arrived (``max_delay`` is how
+  much later than the other cameras' frames a camera's frame may still arrive). It needs ``min_views`` frames, else its frames are dropped
+  (``incomplete``). A silent camera therefore never stops the others;
+- frames older than ``max_age`` behind the newest stamp are dropped (``stale``).
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import Deque, Dict, List, Optional, Sequence
+
+import numpy as np
+
+from .problem import FormatError, Problem
+
+__all__ = ["Frame", "WindowConfig", "WindowAssembler", "validate_frame", "window_problem", "FrameError"]
+
+
+class FrameError(ValueError):
+    """A frame that cannot be matched; ``reason`` is a short counter key."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclasses.dataclass
+class Frame:
+    """Keypoints of one camera image.
+
+    Shapes:
+        keypoints: (N, 2) pixel x, y.  descriptors: (N, D).
+        scales, orientations, scores: (N,) or None.
+        K: (3, 3) or None (uncalibrated).  image_size: (width, height) or None.
+        R, t: world->camera pose (3, 3), (3,) or None (only bags with poses have it).
+    """
+
+    camera_id: str
+    stamp: float
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    frame_id: str = ""
+    scales: Optional[np.ndarray] = None
+    orientations: Optional[np.ndarray] = None
+    scores: Optional[np.ndarray] = None
+    K: Optional[np.ndarray] = None
+    image_size: Optional[tuple] = None
+    R: Optional[np.ndarray] = None
+    t: Optional[np.ndarray] = None
+
+    @property
+    def count(self) -> int:
+        return int(np.shape(self.keypoints)[0]) if np.ndim(self.keypoints) == 2 else -1
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowConfig:
+    """Attributes:
+        cameras: camera ids in window order (a window lists its views in this order).
+        sync_tolerance: max stamp difference to the window's anchor, seconds.
+        min_views: fewest views a window may have.
+        max_delay: how much later (in stamp time) than other cameras' frames a camera's frame
+            may arrive and still join its window, seconds; only delays windows missing a camera.
+        max_age: frames further than this behind the newest stamp are dropped, seconds.
+        max_future: frames stamped further than this ahead of the caller's clock are dropped, seconds.
+        max_keypoints: frames with more keypoints keep the best-scored (else first) ones.
+        descriptor_dim: required descriptor dimension (0: any, but equal within a window).
+        buffer_size: frames buffered per camera.
+    """
+
+    cameras: tuple
+    sync_tolerance: float = 0.05
+    min_views: int = 2
+    max_delay: float = 0.1
+    max_age: float = 1.0
+    max_future: float = 5.0
+    max_keypoints: int = 4096
+    descriptor_dim: int = 0
+    buffer_size: int = 8
+
+    def __post_init__(self) -> None:
+        if len(self.cameras) < 1 or len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras must be distinct and non-empty, got {list(self.cameras)}")
+        if not 2 <= self.min_views <= max(len(self.cameras), 2):
+            raise ValueError(f"min_views must be in [2, {len(self.cameras)}], got {self.min_views}")
+        if self.sync_tolerance < 0 or self.max_delay < 0 or self.max_age <= 0 or self.max_keypoints < 1 or self.buffer_size < 1:
+            raise ValueError("sync_tolerance >= 0, max_delay >= 0, max_age > 0, max_keypoints >= 1, buffer_size >= 1 required")
+
+
+def _optional(arr, n: int, name: str, shape_tail=()) -> Optional[np.ndarray]:
+    if arr is None or np.size(arr) == 0:
+        return None
+    a = np.asarray(arr, dtype=np.float64)
+    if a.shape != (n, *shape_tail):
+        raise FrameError("bad_shape", f"{name}: expected shape {(n, *shape_tail)}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise FrameError("non_finite", f"{name}: contains NaN or inf")
+    return a
+
+
+def validate_frame(frame: Frame, config: Optional[WindowConfig] = None) -> Frame:
+    """Validate a frame and return a cleaned copy (float32 arrays, at most ``max_keypoints``).
+
+    Raises:
+        FrameError: with reason ``bad_shape``, ``count_mismatch``, ``non_finite``, ``empty``,
+            ``descriptor_dim`` or ``bad_intrinsics``.
+    """
+    kp = np.asarray(frame.keypoints, dtype=np.float64)
+    desc = np.asarray(frame.descriptors, dtype=np.float64)
+    if kp.ndim != 2 or kp.shape[1] != 2:
+        raise FrameError("bad_shape", f"keypoints: expected shape (N, 2), got {kp.shape}")
+    n = kp.shape[0]
+    if n == 0:
+        raise FrameError("empty", "frame has no keypoints")
+    if desc.ndim != 2 or desc.shape[0] != n:
+        raise FrameError("count_mismatch", f"descriptors: expected shape ({n}, D), got {desc.shape}")
+    if config is not None and config.descriptor_dim and desc.shape[1] != config.descriptor_dim:
+        raise FrameError("descriptor_dim",
+                         f"descriptors: dimension {desc.shape[1]}, expected {config.descriptor_dim}")
+    if not (np.all(np.isfinite(kp)) and np.all(np.isfinite(desc))):
+        raise FrameError("non_finite", "keypoints or descriptors contain NaN or inf")
+    scales = _optional(frame.scales, n, "scales")
+    orient = _optional(frame.orientations, n, "orientations")
+    scores = _optional(frame.scores, n, "scores")
+    K = frame.K
+    if K is not None:
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise FrameError("bad_intrinsics", f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
+        if abs(np.linalg.det(K)) < 1e-12:
+            K = None  # all-zero CameraInfo.k: uncalibrated
+    keep = slice(None)
+    if config is not None and n > config.max_keypoints:
+        keep = np.sort(np.argsort(-scores, kind="stable")[:config.max_keypoints]) if scores is not None \
+            else np.arange(config.max_keypoints)
+    sub = (lambda a: None if a is None else a[keep].astype(np.float32))  # noqa: E731
+    return dataclasses.replace(frame, keypoints=kp[keep].astype(np.float32),
+                               descriptors=desc[keep].astype(np.float32), scales=sub(scales),
+                               orientations=sub(orient), scores=sub(scores), K=K)
+
+
+def window_problem(frames: Sequence[Frame], name: str = "") -> Problem:
+    """Stack the frames of a window into a :class:`Problem` (views in the given order).
+
+    Optional per-keypoint and per-view fields are kept only when every frame has them.
+    """
+    if not frames:
+        raise FrameError("empty", "window has no frames")
+    dims = {f.descriptors.shape[1] for f in frames}
+    if len(dims) != 1:
+        raise FrameError("descriptor_dim", f"descriptor dimensions differ within the window: {sorted(dims)}")
+    sizes = [f.count for f in frames]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+    def stack(attr, per_view=False):
+        vals = [getattr(f, attr) for f in frames]
+        if any(v is None for v in vals):
+            return None
+        return np.stack(vals) if per_view else np.concatenate(vals)
+
+    image_size = stack("image_size", per_view=True)
+    try:
+        return Problem(view_offsets=offsets, keypoints=stack("keypoints"), descriptors=stack("descriptors"),
+                       scales=stack("scales"), orientations=stack("orientations"),
+                       K=stack("K", per_view=True), R=stack("R", per_view=True), t=stack("t", per_view=True),
+                       image_size=image_size, name=name)
+    except FormatError as exc:
+        raise FrameError("bad_shape", str(exc)) from None
+
+
+class WindowAssembler:
+    """Buffers frames per camera and emits windows (see the module docstring for the policy)."""
+
+    def __init__(self, config: WindowConfig) -> None:
+        self.config = config
+        self._buffers: Dict[str, Deque[Frame]] = {c: collections.deque() for c in config.cameras}
+        self._last_stamp: Dict[str, float] = {}
+        self._newest = -np.inf
+        self.drops: Dict[str, int] = collections.Counter()
+        self.received: Dict[str, int] = collections.Counter()
+        self.windows_emitted = 0
+
+    def _drop(self, reason: str, count: int = 1) -> None:
+        self.drops[reason] += count
+
+    def add(self, frame: Frame, now: Optional[float] = None) -> List[List[Frame]]:
+        """Buffer one frame; returns the windows it completes (usually zero or one).
+
+        Invalid frames are dropped and counted (``drops``); this never raises for bad input.
+        """
+        cfg = self.config
+        if frame.camera_id not in self._buffers:
+            self._drop("unknown_camera")
+            return []
+        self.received[frame.camera_id] += 1
+        if not np.isfinite(frame.stamp):
+            self._drop("bad_stamp")
+            return []
+        if now is not None and frame.stamp > now + cfg.max_future:
+            self._drop("future")
+            return []
+        if frame.stamp <= self._last_stamp.get(frame.camera_id, -np.inf):
+            self._drop("out_of_order")
+            return []
+        try:
+            frame = validate_frame(frame, cfg)
+        except FrameError as exc:
+            self._drop(exc.reason)
+            return []
+        self._last_stamp[frame.camera_id] = frame.stamp
+        buf = self._buffers[frame.camera_id]
+        buf.append(frame)
+        if len(buf) > cfg.buffer_size:
+            buf.popleft()
+            self._drop("overflow")
+        self._newest = max(self._newest, frame.stamp)
+        self._expire()
+        windows = []
+        while True:
+            window = self._try_window()
+            if window is None:
+                break
+            windows.append(window)
+        return windows
+
+    def _expire(self) -> None:
+        for buf in self._buffers.values():
+            while buf and buf[0].stamp < self._newest - self.config.max_age:
+                buf.popleft()
+                self._drop("stale")
+
+    def _try_window(self) -> Optional[List[Frame]]:
+        cfg = self.config
+        heads = [b[0].stamp for b in self._buffers.values() if b]
+        if not heads:
+            return None
+        anchor = min(heads)
+        chosen: Dict[str, Frame] = {}
+        for cam, buf in self._buffers.items():
+            near = [f for f in buf if abs(f.stamp - anchor) <= cfg.sync_tolerance]
+            if near:
+                chosen[cam] = min(near, key=lambda f: abs(f.stamp - anchor))
+        complete = len(chosen) == len(cfg.cameras)
+        settled = self._newest > anchor + cfg.sync_tolerance + cfg.max_delay
+        if not (complete or settled):
+            return None
+        # Consume the chosen frames and everything older in their buffers; the anchor frame always goes.
+        for cam, buf in self._buffers.items():
+            if cam in chosen:
+                while buf and buf[0].stamp <= chosen[cam].stamp:
+                    buf.popleft()
+        if len(chosen) < cfg.min_views:
+            self._drop("incomplete", len(chosen))
+            return None if not any(self._buffers.values()) else self._try_window()
+        self.windows_emitted += 1
+        return [chosen[c] for c in cfg.cameras if c in chosen]
+
+    def flush(self) -> List[List[Frame]]:
+        """Emit what can still form windows at end of input (bag end), dropping the rest."""
+        newest, self._newest = self._newest, np.inf  # no frame can come any more
+        windows = []
+        while True:
+            w = self._try_window()
+            if w is None:
+                break
+            windows.append(w)
+        self._newest = newest
+        leftover = sum(len(b) for b in self._buffers.values())
+        if leftover:
+            self._drop("incomplete", leftover)
+            for b in self._buffers.values():
+                b.clear()
+        return windows
