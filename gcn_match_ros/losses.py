@@ -1,0 +1,304 @@
+"""Training losses of the GCN, computed without ever forming an N × N matrix.
+
+Both losses compare the embedding similarity S = EEᵀ with a target over the
+N² keypoint pairs of one problem (one graph; for a block-diagonal batch call them
+on each graph's rows):
+
+- :func:`reconstruction_loss`: the paper's D(A + I, EEᵀ), mean |·| (L1) or mean (·)² (L2)
+  over all N² entries. L2 in closed form from the edges and the d × d Gram matrix
+  EᵀE; L1 one view-pair block (n_a × n_b) at a time.
+- :func:`epipolar_loss`: the paper's geometric term mean(S ∘ G) over cross-view pairs,
+  with G the epipolar residual of the two keypoints under the known poses; one
+  view-pair block at a time.
+
+All functions are differentiable in E, work in float32 and float64, and accept
+``view_offsets`` as a tensor, array or list of V+1 ints.
+"""
+from __future__ import annotations
+
+from typing import List, Optional, Sequence, Tuple, Union
+
+import torch
+from torch import Tensor
+
+__all__ = ["reconstruction_loss", "epipolar_loss", "epipolar_residuals", "essential_from_poses",
+           "skew"]
+
+Offsets = Union[Tensor, Sequence[int]]
+
+
+def _offsets(view_offsets: Offsets, num_nodes: int) -> List[int]:
+    vo = [int(v) for v in (view_offsets.tolist() if hasattr(view_offsets, "tolist") else view_offsets)]
+    if len(vo) < 2 or vo[0] != 0 or vo[-1] != num_nodes or any(b < a for a, b in zip(vo[:-1], vo[1:])):
+        raise ValueError(f"view_offsets: expected (V+1,) non-decreasing offsets from 0 to N={num_nodes}, got {vo}")
+    return vo
+
+
+def _check_embedding(E: Tensor, num_nodes: Optional[int] = None) -> None:
+    if E.dim() != 2 or (num_nodes is not None and E.shape[0] != num_nodes):
+        want = f"({'N' if num_nodes is None else num_nodes}, d)"
+        raise ValueError(f"E: expected shape {want}, got {tuple(E.shape)}")
+
+
+def _view_index(vo: List[int], device) -> Tensor:
+    sizes = torch.tensor([b - a for a, b in zip(vo[:-1], vo[1:])], device=device)
+    return torch.repeat_interleave(torch.arange(len(vo) - 1, device=device), sizes)
+
+
+def _target_entries(edge_index: Tensor, edge_weight: Tensor, num_nodes: int, view: Tensor,
+                    include_identity: bool, include_within_view: bool, dtype) -> Tuple[Tensor, Tensor, Tensor]:
+    """Coalesced non-zeros (rows, cols, values) of the counted part of the target T."""
+    if edge_index.dim() != 2 or edge_index.shape[0] != 2:
+        raise ValueError(f"edge_index: expected shape (2, E), got {tuple(edge_index.shape)}")
+    if edge_weight.dim() != 1 or edge_weight.shape[0] != edge_index.shape[1]:
+        raise ValueError(f"edge_weight: expected shape ({edge_index.shape[1]},), got {tuple(edge_weight.shape)}")
+    r, c = edge_index[0].long(), edge_index[1].long()
+    w = edge_weight.to(dtype)
+    if not include_within_view:
+        keep = view[r] != view[c]
+        r, c, w = r[keep], c[keep], w[keep]
+    if include_identity:
+        nodes = torch.arange(num_nodes, device=r.device)
+        r, c = torch.cat([r, nodes]), torch.cat([c, nodes])
+        w = torch.cat([w, torch.ones(num_nodes, dtype=dtype, device=w.device)])
+    # sum duplicates so that sum(T²) is right
+    key = r * num_nodes + c
+    uniq, inv = torch.unique(key, return_inverse=True)
+    vals = torch.zeros(uniq.shape[0], dtype=dtype, device=w.device).index_add(0, inv, w)
+    return uniq // num_nodes, uniq % num_nodes, vals
+
+
+def reconstruction_loss(E: Tensor, edge_index: Tensor, edge_weight: Tensor, num_nodes: int,
+                        view_offsets: Offsets, kind: str = "l1", include_identity: bool = True,
+                        include_within_view: bool = True) -> Tensor:
+    r"""Mean discrepancy between the target T = A (+ I) and S = EEᵀ.
+
+    .. math::
+        L_1 = \frac{1}{|M|}\sum_{(i,j)\in M} |T_{ij} - (EE^\top)_{ij}|, \qquad
+        L_2 = \frac{1}{|M|}\sum_{(i,j)\in M} (T_{ij} - (EE^\top)_{ij})^2
+
+    M is the set of counted entries: all N² (the paper) when ``include_within_view``,
+    else only pairs in different views (plus the diagonal when ``include_identity``).
+
+    L2 is evaluated in closed form, O(E·d + N·d²):
+    ``Σ_M T² − 2 Σ_edges T_ij (EEᵀ)_ij + Σ_M (EEᵀ)²`` with ``Σ_all (EEᵀ)² = ‖EᵀE‖_F²``
+    (within-view blocks ``‖E_vᵀE_v‖_F²`` subtracted when masked, the diagonal
+    ``Σ‖e_i‖⁴`` added back). L1 is evaluated one view-pair block at a time, memory
+    O(max n_a n_b); it assumes A is symmetric (as :class:`graph.CorrespondenceGraph` is)
+    and counts each off-diagonal block twice.
+
+    Args:
+        E: (N, d) embeddings.
+        edge_index: (2, E) int64 non-zeros of A (both directions of every edge).
+        edge_weight: (E,) their weights.
+        num_nodes: N.
+        view_offsets: (V+1,) node offsets of the views.
+        kind: "l1" or "l2".
+        include_identity: target A + I (the paper) instead of A.
+        include_within_view: count the within-view blocks (the paper), where the
+            target is 0 off the diagonal.
+
+    Returns:
+        () scalar loss in E's dtype.
+
+    Shapes:
+        E (N, d), edge_index (2, E), edge_weight (E,), view_offsets (V+1,) -> ().
+    """
+    _check_embedding(E, num_nodes)
+    if kind not in ("l1", "l2"):
+        raise ValueError(f"reconstruction_loss: kind must be 'l1' or 'l2', got {kind!r}")
+    vo = _offsets(view_offsets, num_nodes)
+    n = num_nodes
+    if n == 0:
+        return E.sum() * 0.0
+    view = _view_index(vo, E.device)
+    rows, cols, vals = _target_entries(edge_index.to(E.device), edge_weight.to(E.device), n, view,
+                                       include_identity, include_within_view, E.dtype)
+    sizes = [b - a for a, b in zip(vo[:-1], vo[1:])]
+    if include_within_view:
+        count = n * n
+    else:
+        count = n * n - sum(s * s for s in sizes) + (n if include_identity else 0)
+    if count == 0:
+        return E.sum() * 0.0
+
+    if kind == "l2":
+        s_on_t = (E[rows] * E[cols]).sum(dim=1)
+        gram = E.t() @ E
+        s_sq = gram.square().sum()
+        if not include_within_view:
+            for a, b in zip(vo[:-1], vo[1:]):
+                Ev = E[a:b]
+                s_sq = s_sq - (Ev.t() @ Ev).square().sum()
+            if include_identity:
+                s_sq = s_sq + E.square().sum(dim=1).square().sum()
+        total = vals.square().sum() - 2.0 * (vals * s_on_t).sum() + s_sq
+        return total / count
+
+    # L1, block by block
+    V = len(vo) - 1
+    vr, vc = view[rows], view[cols]
+    total = E.new_zeros(())
+    for a in range(V):
+        a0, a1 = vo[a], vo[a + 1]
+        if a1 == a0:
+            continue
+        for b in range(a, V):
+            b0, b1 = vo[b], vo[b + 1]
+            if b1 == b0:
+                continue
+            sel = (vr == a) & (vc == b)
+            if a == b and not include_within_view:
+                if include_identity:  # only the diagonal is counted
+                    diag = E[a0:a1].square().sum(dim=1)
+                    total = total + (1.0 - diag).abs().sum()
+                continue
+            T = E.new_zeros(a1 - a0, b1 - b0)
+            T[rows[sel] - a0, cols[sel] - b0] = vals[sel]
+            block = (T - E[a0:a1] @ E[b0:b1].t()).abs().sum()
+            total = total + (block if a == b else 2.0 * block)
+    return total / count
+
+
+# ---------------------------------------------------------------------------
+# Epipolar geometry
+# ---------------------------------------------------------------------------
+def skew(v: Tensor) -> Tensor:
+    """Cross-product matrix [v]ₓ, so that ``skew(v) @ w == cross(v, w)``.
+
+    Shapes: v (*, 3) -> (*, 3, 3).
+    """
+    if v.shape[-1] != 3:
+        raise ValueError(f"skew: expected shape (*, 3), got {tuple(v.shape)}")
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([torch.stack([o, -z, y], -1),
+                        torch.stack([z, o, -x], -1),
+                        torch.stack([-y, x, o], -1)], -2)
+
+
+def _check_pose(R: Tensor, t: Tensor, name: str) -> None:
+    if R.dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R_{name}: expected shape (*, 3, 3), got {tuple(R.shape)}")
+    if t.dim() < 1 or t.shape[-1] != 3:
+        raise ValueError(f"t_{name}: expected shape (*, 3), got {tuple(t.shape)}")
+
+
+def essential_from_poses(R_i: Tensor, t_i: Tensor, R_j: Tensor, t_j: Tensor,
+                         eps: float = 1e-12) -> Tensor:
+    r"""Essential matrix between views i and j for world→camera poses, unit baseline.
+
+    With ``x ~ K (R X + t)`` the camera centre is C = −Rᵀt and a calibrated point x
+    has world direction Rᵀx. Two rays meet iff they are coplanar with the baseline:
+
+    .. math::
+        (R_i^\top x_i) \cdot \big(\hat b \times R_j^\top x_j\big) = x_i^\top
+        \underbrace{R_i [\hat b]_\times R_j^\top}_{E_{ij}} x_j = 0,
+        \qquad \hat b = \frac{C_j - C_i}{\lVert C_j - C_i\rVert}
+
+    The baseline is normalised (max(‖b‖, eps)) so residuals do not depend on the
+    scene's scale; coincident centres give E ≈ 0.
+
+    Shapes: R_i, R_j (*, 3, 3), t_i, t_j (*, 3) broadcastable -> (*, 3, 3).
+    """
+    _check_pose(R_i, t_i, "i")
+    _check_pose(R_j, t_j, "j")
+    C_i = -(R_i.transpose(-1, -2) @ t_i.unsqueeze(-1)).squeeze(-1)
+    C_j = -(R_j.transpose(-1, -2) @ t_j.unsqueeze(-1)).squeeze(-1)
+    b = C_j - C_i
+    b = b / b.norm(dim=-1, keepdim=True).clamp(min=eps)
+    return R_i @ skew(b) @ R_j.transpose(-1, -2)
+
+
+def epipolar_residuals(X_i: Tensor, X_j: Tensor, R_i: Tensor, t_i: Tensor, R_j: Tensor, t_j: Tensor,
+                       normalize_rays: bool = False) -> Tensor:
+    r"""Epipolar residuals |x_iᵀ E_ij x_j| of point pairs (see :func:`essential_from_poses`).
+
+    Poses are world→camera (``x ~ K (R X + t)``), points calibrated homogeneous
+    (K⁻¹[u, v, 1], :func:`features.calibrated_points`). The baseline is unit length,
+    so the residual is scale-free; with ``normalize_rays`` the points are also made
+    unit vectors, which bounds the residual by 1 (the volume spanned by the two rays
+    and the baseline direction).
+
+    Broadcasting follows ``torch.matmul``: points (*, N, 3) pair row by row, the pose
+    batch (*) broadcasts with the points' leading dimensions. Examples:
+    (N, 3) with single poses (3, 3)/(3,) -> (N,); (B, N, 3) with (B, 3, 3)/(B, 3) -> (B, N);
+    all pairs of two sets: X_i (n, 1, 3), X_j (1, m, 3), single poses -> (n, m).
+
+    Shapes:
+        X_i, X_j (*, N, 3); R_i, R_j (*, 3, 3); t_i, t_j (*, 3) -> (*, N).
+    """
+    if X_i.dim() < 2 or X_i.shape[-1] != 3:
+        raise ValueError(f"X_i: expected shape (*, N, 3), got {tuple(X_i.shape)}")
+    if X_j.dim() < 2 or X_j.shape[-1] != 3:
+        raise ValueError(f"X_j: expected shape (*, N, 3), got {tuple(X_j.shape)}")
+    Ess = essential_from_poses(R_i, t_i, R_j, t_j)
+    if normalize_rays:
+        X_i = X_i / X_i.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        X_j = X_j / X_j.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    return ((X_i @ Ess) * X_j).sum(dim=-1).abs()
+
+
+def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offsets,
+                  clamp_negative: bool = True, normalize_rays: bool = False) -> Tensor:
+    r"""The paper's geometric loss: mean over cross-view pairs of (EEᵀ)_ij · G_ij.
+
+    .. math::
+        L = \frac{1}{\sum_{a<b} n_a n_b} \sum_{a<b} \sum_{i\in a, j\in b} s_{ij} G_{ij},
+        \qquad G_{ij} = |x_i^\top R_a [\hat b_{ab}]_\times R_b^\top x_j|
+
+    for world→camera poses (R_v, t_v) (``x ~ K (R X + t)``, camera centre C = −Rᵀt,
+    camera→world rotation Rᵀ, unit baseline direction b̂_ab = (C_b − C_a)/‖C_b − C_a‖,
+    which makes the loss independent of the scene's scale); see
+    :func:`essential_from_poses`. The authors wrote the same residual with
+    camera→world rotations and camera centres. The mean over unordered pairs equals
+    the mean over ordered ones (both S and G are symmetric). Computed one view-pair
+    block at a time.
+
+    A matched pair (same scene point) has G = 0, so the loss penalises similarity
+    between keypoints whose rays cannot meet. ``clamp_negative`` uses
+    s_ij = max((EEᵀ)_ij, 0): otherwise an embedding could lower the loss by making
+    geometrically impossible pairs *negatively* similar (EEᵀ of unit rows lies in [-1, 1]).
+
+    Args:
+        E: (N, d) embeddings.
+        X: (N, 3) calibrated homogeneous keypoints (:func:`features.calibrated_points`).
+        R: (V, 3, 3) world→camera rotations.
+        t: (V, 3) world→camera translations.
+        view_offsets: (V+1,) node offsets of the views.
+
+    Returns:
+        () scalar loss in E's dtype (0 with fewer than two non-empty views).
+
+    Shapes:
+        E (N, d), X (N, 3), R (V, 3, 3), t (V, 3), view_offsets (V+1,) -> ().
+    """
+    _check_embedding(E)
+    n = E.shape[0]
+    vo = _offsets(view_offsets, n)
+    V = len(vo) - 1
+    if X.shape != (n, 3):
+        raise ValueError(f"X: expected shape ({n}, 3), got {tuple(X.shape)}")
+    if R.shape != (V, 3, 3):
+        raise ValueError(f"R: expected shape ({V}, 3, 3), got {tuple(R.shape)}")
+    if t.shape != (V, 3):
+        raise ValueError(f"t: expected shape ({V}, 3), got {tuple(t.shape)}")
+    X = X.to(device=E.device, dtype=E.dtype)
+    R = R.to(device=E.device, dtype=E.dtype)
+    t = t.to(device=E.device, dtype=E.dtype)
+    if normalize_rays:
+        X = X / X.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    total, count = E.new_zeros(()), 0
+    for a in range(V):
+        a0, a1 = vo[a], vo[a + 1]
+        for b in range(a + 1, V):
+            b0, b1 = vo[b], vo[b + 1]
+            if a1 == a0 or b1 == b0:
+                continue
+            G = (X[a0:a1] @ essential_from_poses(R[a], t[a], R[b], t[b]) @ X[b0:b1].t()).abs()
+            S = E[a0:a1] @ E[b0:b1].t()
+            if clamp_negative:
+                S = S.clamp(min=0.0)
+            total = total + (S * G).sum()
+            count += (a1 - a0) * (b1 - b0)
+    return total / count if count else total

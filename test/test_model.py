@@ -1,0 +1,291 @@
+"""Tests of gcn_match_ros.model: normalisation, batching, shapes, overfitting, checkpoints."""
+import json
+import time
+
+import numpy as np
+import pytest
+import torch
+
+from gcn_match_ros.features import FeatureConfig, feature_dim, node_features
+from gcn_match_ros.graph import GraphConfig, build_graph
+from gcn_match_ros.losses import reconstruction_loss
+from gcn_match_ros.model import (GCN, CheckpointError, GCNConfig, collate, embed_problem, gcn_norm,
+                                 graph_tensors, load_checkpoint, normalized_adjacency, save_checkpoint)
+from gcn_match_ros.problem import Problem
+
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Tiny graphs: one intra-op thread is fastest and immune to a busy shared CPU."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+SMALL = dict(widths=(16, 16, 24, 24), out_dim=12, groups=4, skip_layers=(2, 4))
+
+
+def permuted_problem(n_views=3, p=20, dim=16, noise=0.3, seed=0):
+    """V views of the same p points, each view a random permutation with noisy descriptors."""
+    rng = np.random.default_rng(seed)
+    base = rng.normal(size=(p, dim))
+    desc, kps, gt = [], [], []
+    for _ in range(n_views):
+        perm = rng.permutation(p)
+        desc.append(base[perm] + noise * rng.normal(size=(p, dim)))
+        kps.append(rng.uniform(0, 640, size=(p, 2)))
+        gt.append(perm)
+    return Problem(view_offsets=np.arange(n_views + 1) * p, keypoints=np.concatenate(kps),
+                   descriptors=np.concatenate(desc), scales=rng.uniform(1, 10, n_views * p),
+                   orientations=rng.uniform(-np.pi, np.pi, n_views * p),
+                   image_size=np.tile([640, 480], (n_views, 1)), gt_track=np.concatenate(gt))
+
+
+def inputs(problem, graph_config=GraphConfig()):
+    g = build_graph(problem, graph_config)
+    ei, ew = graph_tensors(g)
+    return torch.from_numpy(node_features(problem)), ei, ew, g
+
+
+# ---------------------------------------------------------------------------
+# gcn_norm
+# ---------------------------------------------------------------------------
+def _dense(index, weight, n):
+    A = torch.zeros(n, n, dtype=weight.dtype)
+    A.index_put_((index[0], index[1]), weight, accumulate=True)
+    return A
+
+
+def test_gcn_norm_equals_dense_formula():
+    ei = torch.tensor([[0, 1, 0, 2, 1, 3], [1, 0, 2, 0, 3, 1]])
+    ew = torch.tensor([0.5, 0.5, 1.0, 1.0, 0.25, 0.25], dtype=torch.float64)
+    n = 5  # node 4 isolated
+    A = _dense(ei, ew, n)
+    D = torch.diag(1.0 + A.sum(1))
+    Dm = torch.diag(torch.diag(D).rsqrt())
+    ref = Dm @ (A + torch.eye(n, dtype=torch.float64)) @ Dm
+    idx, w = gcn_norm(ei, ew, n)
+    assert idx.shape == (2, 6 + n) and w.shape == (6 + n,)
+    assert torch.allclose(_dense(idx, w, n), ref)
+    assert torch.allclose(normalized_adjacency(ei, ew, n).to_dense(), ref)
+    # hand value: node 0 has degree 1 + 1.5, node 1 1 + 0.75
+    assert w[0].item() == pytest.approx(0.5 / np.sqrt(2.5 * 1.75))
+    assert _dense(idx, w, n)[4, 4].item() == pytest.approx(1.0)
+
+
+def test_gcn_norm_folds_existing_self_loops():
+    ei = torch.tensor([[0, 1, 1], [1, 0, 1]])
+    ew = torch.tensor([1.0, 1.0, 0.5], dtype=torch.float64)
+    A = _dense(ei, ew, 2)
+    d = 1.0 + A.sum(1)
+    ref = (A + torch.eye(2, dtype=torch.float64)) / torch.sqrt(d[:, None] * d[None, :])
+    idx, w = gcn_norm(ei, ew, 2)
+    assert idx.shape == (2, 4)  # one diagonal entry per node
+    assert torch.allclose(_dense(idx, w, 2), ref)
+
+
+# ---------------------------------------------------------------------------
+# forward
+# ---------------------------------------------------------------------------
+def test_output_rows_unit_norm_and_shape():
+    prob = permuted_problem()
+    x, ei, ew, _ = inputs(prob)
+    torch.manual_seed(0)
+    model = GCN(GCNConfig(in_dim=x.shape[1], **SMALL)).eval()
+    E = model(x, ei, ew)
+    assert E.shape == (60, 12)
+    assert torch.allclose(E.norm(dim=1), torch.ones(60), atol=1e-5)
+
+
+def test_default_config_forward_and_embed_problem():
+    prob = permuted_problem(n_views=4, p=30, dim=128)
+    cfg = GCNConfig(in_dim=feature_dim(128))
+    assert cfg.in_dim == 132 and len(cfg.widths) == 12
+    model = GCN(cfg)
+    E, g = embed_problem(model, prob)
+    assert E.shape == (120, cfg.out_dim) and E.dtype == np.float32
+    assert np.allclose(np.linalg.norm(E, axis=1), 1.0, atol=1e-5)
+    assert model.training  # restored
+
+
+@pytest.mark.parametrize("norm", ["graph", "node", "none"])
+def test_batched_forward_equals_separate(norm):
+    p1, p2 = permuted_problem(3, 20, seed=1), permuted_problem(4, 13, seed=2)
+    x1, ei1, ew1, g1 = inputs(p1)
+    x2, ei2, ew2, g2 = inputs(p2)
+    torch.manual_seed(0)
+    model = GCN(GCNConfig(in_dim=x1.shape[1], norm=norm, **SMALL)).eval()
+    x, ei, ew, ptr = collate([(x1.numpy(), g1), (x2, ei2, ew2)])
+    assert ptr.tolist() == [0, 60, 112] and x.shape == (112, x1.shape[1])
+    assert ei.shape[1] == ei1.shape[1] + ei2.shape[1]
+    with torch.no_grad():
+        both = model(x, ei, ew, ptr)
+        a, b = model(x1, ei1, ew1), model(x2, ei2, ew2)
+    assert torch.allclose(both[:60], a, atol=1e-5)
+    assert torch.allclose(both[60:], b, atol=1e-5)
+
+
+def test_model_gradcheck_float64():
+    prob = permuted_problem(2, 5, dim=4)
+    x, ei, ew, _ = inputs(prob)
+    torch.manual_seed(0)
+    model = GCN(GCNConfig(in_dim=x.shape[1], widths=(4, 4, 4), out_dim=3, groups=2, skip_layers=(2, 3))).double()
+    x = x.double().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda z: model(z, ei, ew.double()), (x,), eps=1e-6, atol=1e-6)
+
+
+def test_bad_shapes_raise_naming_the_shape():
+    prob = permuted_problem()
+    x, ei, ew, _ = inputs(prob)
+    model = GCN(GCNConfig(in_dim=x.shape[1], **SMALL))
+    F = x.shape[1]
+    with pytest.raises(ValueError, match=rf"x: expected shape \(N, {F}\), got \(60, 7\)"):
+        model(x[:, :7], ei, ew)
+    with pytest.raises(ValueError, match=r"x: expected shape .*got \(60, 1, 20\)"):
+        model(x[:, None], ei, ew)
+    with pytest.raises(ValueError, match=r"edge_index: expected shape \(2, E\), got \(3, "):
+        model(x, torch.cat([ei, ei[:1]]), ew)
+    with pytest.raises(ValueError, match=r"edge_weight: expected shape \(\d+,\)"):
+        model(x, ei, ew[:-1])
+    with pytest.raises(ValueError, match=r"edge_index: node indices must lie in \[0, 50\)"):
+        model(x[:50], ei, ew)
+    with pytest.raises(ValueError, match=r"edge_index: expected an integer dtype"):
+        model(x, ei.float(), ew)
+    with pytest.raises(ValueError, match=r"node_ptr: must start at 0"):
+        model(x, ei, ew, torch.tensor([0, 30, 59]))
+    with pytest.raises(ValueError, match=r"items\[1\].x: expected shape \(N, 20\), got \(5, 3\)"):
+        collate([(x, ei, ew), (torch.zeros(5, 3), torch.zeros(2, 0, dtype=torch.int64), torch.zeros(0))])
+    with pytest.raises(ValueError, match="not divisible by groups"):
+        GCNConfig(widths=(10, 12), groups=4, skip_layers=())
+    with pytest.raises(ValueError, match="skip_layers"):
+        GCNConfig(widths=(8, 8), groups=4, skip_layers=(3,))
+
+
+def test_config_dict_round_trip():
+    cfg = GCNConfig(in_dim=20, **SMALL)
+    d = json.loads(json.dumps(cfg.to_dict()))
+    assert GCNConfig.from_dict(d) == cfg
+    with pytest.raises(ValueError, match="unknown keys"):
+        GCNConfig.from_dict({**d, "depth": 3})
+
+
+# ---------------------------------------------------------------------------
+# overfitting one problem
+# ---------------------------------------------------------------------------
+def test_small_gcn_overfits_one_problem():
+    t0 = time.perf_counter()
+    torch.manual_seed(0)
+    prob = permuted_problem(3, 20, dim=16, noise=0.3, seed=3)
+    x, ei, ew, g = inputs(prob)
+    model = GCN(GCNConfig(in_dim=x.shape[1], widths=(32, 32, 32, 32), out_dim=32, groups=4, skip_layers=(2, 4)))
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    vo = prob.view_offsets
+    first = None
+    for _ in range(250):
+        opt.zero_grad()
+        loss = reconstruction_loss(model(x, ei, ew), ei, ew, 60, vo, "l1")
+        loss.backward()
+        opt.step()
+        first = loss.item() if first is None else first
+    final = loss.item()
+    assert final < 0.4 * first, (first, final)
+    with torch.no_grad():
+        S = (lambda E: E @ E.T)(model.eval()(x, ei, ew)).numpy()
+    gt = prob.gt_track
+    view = prob.view_index
+    cross = view[:, None] != view[None, :]
+    true = (gt[:, None] == gt[None, :]) & cross
+    pred = (S > 0.5) & cross
+    recall = (pred & true).sum() / true.sum()
+    # it reproduces the graph: pairs that are not candidate edges stay below 0.5
+    non_edges = cross & (g.adjacency().toarray() == 0)
+    false_rate = (pred & non_edges).sum() / non_edges.sum()
+    assert recall > 0.8 and false_rate < 0.05, (recall, false_rate)
+    assert time.perf_counter() - t0 < 15
+
+
+# ---------------------------------------------------------------------------
+# checkpoints
+# ---------------------------------------------------------------------------
+def test_checkpoint_round_trip(tmp_path):
+    prob = permuted_problem()
+    x, ei, ew, _ = inputs(prob)
+    torch.manual_seed(1)
+    model = GCN(GCNConfig(in_dim=x.shape[1], **SMALL)).eval()
+    gcfg, fcfg = GraphConfig(k=3, mutual=True), FeatureConfig(orientation=False)
+    path = tmp_path / "m.pt"
+    save_checkpoint(path, model, {"graph": vars(gcfg).copy(), "features": fcfg.to_dict()}, {"step": 7})
+    loaded, meta = load_checkpoint(path)
+    assert not loaded.training
+    assert meta["model_config"] == model.config
+    assert meta["graph_config"] == gcfg and meta["feature_config"] == fcfg
+    assert meta["extra"]["step"] == 7
+    with torch.no_grad():
+        assert torch.equal(loaded(x, ei, ew), model(x, ei, ew))
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]  # no temp file left
+
+
+def test_checkpoint_errors(tmp_path):
+    model = GCN(GCNConfig(in_dim=20, **SMALL))
+    with pytest.raises(CheckpointError, match="no such checkpoint file"):
+        load_checkpoint(tmp_path / "missing.pt")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"\x00not a checkpoint" * 10)
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(garbage)
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, model)
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(truncated)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(CheckpointError, match="not a gcn_match_ros/gcn-checkpoint file"):
+        load_checkpoint(other)
+    pickled = tmp_path / "pickled.pt"
+    torch.save({"format": "gcn_match_ros/gcn-checkpoint", "obj": object()}, pickled)
+    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
+        load_checkpoint(pickled)  # refused by weights_only
+    mismatch = tmp_path / "mismatch.pt"
+    save_checkpoint(mismatch, model, {"model": GCNConfig(in_dim=20, widths=(8, 8), groups=4,
+                                                         skip_layers=()).to_dict()})
+    with pytest.raises(CheckpointError, match="weights do not fit"):
+        load_checkpoint(mismatch)
+    badcfg = tmp_path / "badcfg.pt"
+    save_checkpoint(badcfg, model, {"graph": {"k": 0}})
+    with pytest.raises(CheckpointError, match="invalid configuration"):
+        load_checkpoint(badcfg)
+    assert issubclass(CheckpointError, ValueError)
+
+
+# ---------------------------------------------------------------------------
+# node features
+# ---------------------------------------------------------------------------
+def test_node_features_layout_and_fixed_width():
+    from gcn_match_ros.features import calibrated_points, normalized_positions
+
+    kp = np.array([[150.0, 140.0], [50.0, 40.0], [0.0, 0.0], [100.0, 50.0]])
+    desc = np.array([[3.0, 4.0], [1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
+    full = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc, scales=[np.e ** 1.5, 1.0, 0.0, 2.0],
+                   orientations=[np.pi / 2, 0.0, -np.pi, 1.0], K=np.stack([K, K]))
+    F = node_features(full)
+    assert F.shape == (4, 2 + 4) and F.dtype == np.float32
+    assert np.allclose(F[0], [0.6, 0.8, 1.0, 1.0, 0.0, 0.5], atol=1e-6)  # K^-1 (150, 140, 1) = (1, 1, 1)
+    assert np.allclose(F[2, 4:], [0.0, -1.0])                      # scale 0 -> 0 column
+    assert np.allclose(calibrated_points(full)[:2], [[1, 1, 1], [0, 0, 1]])
+    bare = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc)
+    Fb = node_features(bare)
+    assert Fb.shape == F.shape and np.all(Fb[:, 4:] == 0)
+    # no K, no image size: centred on each view's keypoint box, divided by its larger side
+    assert np.allclose(Fb[:2, 2:4], [[0.5, 0.5], [-0.5, -0.5]])
+    assert np.allclose(Fb[2:, 2:4], [[-0.5, -0.25], [0.5, 0.25]])
+    sized = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc, image_size=[[200, 100], [200, 100]])
+    assert np.allclose(normalized_positions(sized)[0], [(150 - 100) / 200, (140 - 50) / 200])
+    assert node_features(bare, FeatureConfig(position=False, scale=False)).shape == (4, 3)
+    assert feature_dim(2, FeatureConfig(position=False, scale=False)) == 3
+    with pytest.raises(ValueError, match="no intrinsics"):
+        calibrated_points(bare)
