@@ -302,3 +302,44 @@ def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offs
             total = total + (S * G).sum()
             count += (a1 - a0) * (b1 - b0)
     return total / count if count else total
+
+
+def pixel_epipolar_residuals(xa, xb, K_a, R_a, t_a, K_b, R_b, t_b) -> "np.ndarray":
+    """Sampson distance in pixels of pairs xa[m] <-> xb[m] under the true poses.
+
+    World→camera poses ``x ~ K (R X + t)``; used only by the training loss of the edge head.
+    Shapes: xa, xb (M, 2) pixels, K (3, 3), R (3, 3), t (3,) -> (M,) float64.
+    """
+    import numpy as np
+
+    R_rel = R_b @ R_a.T
+    t_rel = t_b - R_rel @ t_a
+    tx = np.array([[0, -t_rel[2], t_rel[1]], [t_rel[2], 0, -t_rel[0]], [-t_rel[1], t_rel[0], 0]])
+    F = np.linalg.inv(K_b).T @ tx @ R_rel @ np.linalg.inv(K_a)  # xb^T F xa = 0
+    ha = np.concatenate([xa, np.ones((xa.shape[0], 1))], axis=1)
+    hb = np.concatenate([xb, np.ones((xb.shape[0], 1))], axis=1)
+    Fa = ha @ F.T
+    Ftb = hb @ F
+    num = np.abs((hb * Fa).sum(1))
+    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2)
+    return num / np.maximum(den, 1e-12)
+
+
+def edge_loss(logits: Tensor, residual_px: Tensor, tol_px: float = 1.0, span_px: float = 2.0,
+              epipolar_weight: float = 9.0) -> Tensor:
+    r"""Label-free loss of the edge head on the candidate edges of a posed problem.
+
+    .. math::
+        L = \frac{1}{M}\sum_m \mathrm{softplus}(-z_m) + \lambda\, g_m\, \mathrm{softplus}(z_m),
+        \qquad g_m = \mathrm{clip}((d_m - \tau)/\sigma, 0, 1)
+
+    The first term reconstructs the candidate adjacency (every candidate is an edge of A,
+    target 1); the second is the epipolar term: an edge whose Sampson distance d under the
+    true poses exceeds τ + σ pixels is pushed to sigmoid(z) = 1/(1+λ). No match labels.
+    """
+    g = ((residual_px - tol_px) / span_px).clamp(0.0, 1.0).to(logits.dtype)
+    return (F_softplus(-logits) + epipolar_weight * g * F_softplus(logits)).mean()
+
+
+def F_softplus(x: Tensor) -> Tensor:
+    return torch.nn.functional.softplus(x)

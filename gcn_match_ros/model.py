@@ -179,6 +179,12 @@ class GCNConfig:
     skip_layers: Tuple[int, ...] = (7, 12)
     self_skip: bool = True
     eps: float = 1e-5
+    # Optional edge-scoring head (0 = none, the paper's model: scores are EEᵀ). With
+    # edge_features = F_e > 0 an MLP([e_a·e_b, |e_a − e_b|, edge features]) -> logit scores
+    # the candidate edges of :func:`edge_features.candidate_edges` (k = edge_k).
+    edge_features: int = 0
+    edge_hidden: int = 64
+    edge_k: int = 4
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
@@ -336,6 +342,18 @@ class GCN(nn.Module):
         self.hop_skips = nn.ModuleList(nn.Linear(config.widths[a - 1], config.widths[b - 1])
                                        for a, b in zip(skips[:-1], skips[1:]))
         self.out = nn.Linear(config.widths[-1], config.out_dim)
+        if config.edge_features > 0:
+            h = config.edge_hidden
+            self.edge_head = nn.Sequential(nn.Linear(1 + config.out_dim + config.edge_features, h), nn.ReLU(),
+                                           nn.Linear(h, h), nn.ReLU(), nn.Linear(h, 1))
+
+    def score_edges(self, E: Tensor, rows: Tensor, cols: Tensor, edge_x: Tensor) -> Tensor:
+        """Logits of candidate edges (rows[m], cols[m]) from the embeddings and edge features.
+
+        Shapes: E (N, out_dim), rows/cols (M,) int64, edge_x (M, edge_features) -> (M,)."""
+        ea, eb = E[rows], E[cols]
+        z = torch.cat([(ea * eb).sum(1, keepdim=True), (ea - eb).abs(), edge_x.to(E.dtype)], dim=1)
+        return self.edge_head(z).squeeze(1)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_weight: Tensor,
                 node_ptr: Optional[Tensor] = None) -> Tensor:

@@ -1,0 +1,384 @@
+"""Figures of training runs (matplotlib, Agg backend: no display needed).
+
+- :func:`plot_history`: training (thin) and validation (thick, dots) losses of one or
+  several runs over steps, one panel per loss term; overlaying runs compares settings,
+  e.g. with and without the geometric (epipolar) loss. :func:`train.train` writes
+  ``curves.png`` with it.
+- :func:`plot_pr`: precision–recall curves of the runs' ``best.pt`` (and any other
+  method) on problems, through :func:`evaluation.evaluate` / :func:`evaluation.plot_pr_curves`.
+- :func:`plot_similarity`: for one (small) problem with ground truth, the input graph A,
+  the network's EEᵀ and the ground truth XXᵀ side by side, views in blocks and the
+  keypoints of each view ordered by ground-truth track (so true matches form diagonals).
+- :func:`plot_similarity_histograms`: distributions of EEᵀ over cross-view pairs of the
+  same scene point and of different points (the paper's histograms).
+
+Command line (curves of runs; optional figures of their best models on data)::
+
+    python -m gcn_match_ros.plots RUN_DIR [RUN_DIR...] -o curves.png [--labels A B]
+        [--data SPEC... [--count 16] [--pr pr.png] [--similarity sim.png] [--histograms hist.png]]
+
+``SPEC`` takes the forms of ``gcn-match train --val`` (problem files, bags, synth:PRESET).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from .features import FeatureConfig
+from .graph import GraphConfig
+from .problem import Problem
+
+__all__ = ["load_history", "plot_history", "plot_pr", "plot_similarity", "similarity_order",
+           "cross_view_similarities", "plot_similarity_histograms", "main"]
+
+RunLike = Union[str, Path, Mapping[str, Any]]
+_TERMS = ("loss", "recon", "epipolar")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
+# ---------------------------------------------------------------------------
+# Training curves
+# ---------------------------------------------------------------------------
+def load_history(run: RunLike) -> Dict[str, Any]:
+    """A history dict from a run folder, a ``history.json`` path, or the dict itself.
+
+    Raises:
+        OSError: no history.json; ValueError: not a history.
+    """
+    if isinstance(run, Mapping):
+        hist = dict(run)
+    else:
+        p = Path(run)
+        if p.is_dir():
+            p = p / "history.json"
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: no such history file (is {Path(run)} a training run folder?)")
+        try:
+            hist = json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{p}: not a JSON history ({exc})") from None
+    if not isinstance(hist, dict) or not isinstance(hist.get("train", []), list):
+        raise ValueError(f"{run}: not a training history (expected keys 'train', 'val')")
+    hist.setdefault("train", [])
+    hist.setdefault("val", [])
+    return hist
+
+
+def _series(entries: Sequence[Mapping[str, Any]], key: str) -> Tuple[np.ndarray, np.ndarray]:
+    pts = [(e["step"], e[key]) for e in entries
+           if key in e and e[key] is not None and math.isfinite(float(e[key]))]
+    if not pts:
+        return np.zeros(0), np.zeros(0)
+    a = np.asarray(pts, dtype=np.float64)
+    return a[:, 0], a[:, 1]
+
+
+def _smooth(y: np.ndarray, n: int) -> np.ndarray:
+    if n <= 1 or y.size < 2 * n:
+        return y
+    k = np.ones(n) / n
+    pad = np.r_[np.full(n // 2, y[0]), y, np.full(n - 1 - n // 2, y[-1])]
+    return np.convolve(pad, k, mode="valid")
+
+
+def plot_history(runs: Union[RunLike, Sequence[RunLike]], path, labels: Optional[Sequence[str]] = None,
+                 terms: Sequence[str] = _TERMS, log_y: Optional[bool] = None, title: str = "") -> Path:
+    """Training and validation curves of one or several runs, one panel per loss term.
+
+    Args:
+        runs: run folders, ``history.json`` files or history dicts.
+        labels: legend names (default: the folder names, else ``run 1``, ...).
+        terms: loss keys to draw when present (``loss``, ``recon``, ``epipolar``).
+        log_y: logarithmic loss axis; None = when a panel spans more than a factor 20.
+
+    Returns:
+        ``path`` (PNG). Training entries are thin lines (lightly smoothed when long),
+        validation entries thick lines with dots, the best checkpoint a star.
+    """
+    if isinstance(runs, (str, Path, Mapping)):
+        runs = [runs]
+    hists = [load_history(r) for r in runs]
+    if labels is None:
+        labels = [Path(r).name if not isinstance(r, Mapping) else f"run {i + 1}" for i, r in enumerate(runs)]
+    if len(labels) != len(hists):
+        raise ValueError(f"{len(labels)} labels for {len(hists)} runs")
+    present = [t for t in terms if any(_series(h["train"], t)[0].size or _series(h["val"], t)[0].size
+                                       for h in hists)]
+    if not present:
+        raise ValueError("the histories hold no loss values to plot")
+    plt = _plt()
+    from matplotlib.ticker import MaxNLocator
+
+    fig, axes = plt.subplots(1, len(present), figsize=(4.6 * len(present), 3.8), squeeze=False)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    names = {"loss": "total loss", "recon": "reconstruction loss", "epipolar": "epipolar loss"}
+    for ax, term in zip(axes[0], present):
+        lo, hi = np.inf, -np.inf
+        for i, (h, lab) in enumerate(zip(hists, labels)):
+            c = colors[i % len(colors)]
+            xs, ys = _series(h["train"], term)
+            if xs.size:
+                ax.plot(xs, _smooth(ys, max(1, xs.size // 50)), color=c, lw=1.0, alpha=0.55,
+                        label=f"{lab} train")
+                lo, hi = min(lo, ys.min()), max(hi, ys.max())
+            xv, yv = _series(h["val"], term)
+            if xv.size:
+                ax.plot(xv, yv, color=c, lw=2.2, marker="o", ms=3.5, label=f"{lab} val")
+                lo, hi = min(lo, yv.min()), max(hi, yv.max())
+            best = h.get("best") or {}
+            if term == "loss" and best.get("source") == "val" and best.get("step") is not None:
+                ax.plot([best["step"]], [best["loss"]], marker="*", ms=13, color=c, mec="k", mew=0.6, ls="",
+                        label=f"{lab} best (step {best['step']})")
+        use_log = log_y if log_y is not None else (lo > 0 and hi / max(lo, 1e-12) > 20)
+        if use_log:
+            ax.set_yscale("log")
+        ax.set_title(names.get(term, term))
+        ax.set_xlabel("step")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.grid(alpha=0.3)
+    handles, labs = axes[0][0].get_legend_handles_labels()
+    axes[0][0].legend(handles, labs, fontsize=7, loc="best")
+    fig.suptitle(title or "training (thin) and validation (thick) losses", fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+# ---------------------------------------------------------------------------
+# Precision-recall
+# ---------------------------------------------------------------------------
+def plot_pr(checkpoints: Mapping[str, Union[str, Path]], problems: Sequence[Problem], path,
+            extra_methods: Sequence[str] = (), progress: bool = False) -> Dict[str, Any]:
+    """Precision–recall curves of GCN checkpoints (label -> ``.pt``) and ``extra_methods``
+    (e.g. ``"nn"``) on labelled problems; returns the :func:`evaluation.evaluate` report."""
+    from .evaluation import evaluate, plot_pr_curves
+
+    specs = {f"gcn:checkpoint={Path(p)}": label for label, p in checkpoints.items()}
+    report = evaluate(list(problems), list(specs) + list(extra_methods), progress=progress,
+                      with_reference_rows=False)
+    for spec, label in specs.items():
+        report["methods"][spec]["describe"] = label
+    plot_pr_curves(report, path)
+    return report
+
+
+# ---------------------------------------------------------------------------
+# Similarity matrices
+# ---------------------------------------------------------------------------
+def _embed(model, problem: Problem, graph_config: GraphConfig, feature_config: FeatureConfig):
+    from .model import embed_problem
+
+    return embed_problem(model, problem, graph_config, feature_config)
+
+
+def similarity_order(problem: Problem, max_per_view: int = 60) -> Tuple[np.ndarray, np.ndarray]:
+    """Keypoints to show and the view boundaries of the figure.
+
+    Per view: keypoints of ground-truth tracks sorted by track id (tracks seen in the most
+    views first when there are more than ``max_per_view``), then a few unmatched (-1) and
+    unlabelled (-2) ones. Returns ``(rows into the problem (M,), offsets (V+1,))``.
+    """
+    gt = problem.gt_track
+    if gt is None:
+        raise ValueError(f"problem '{problem.name}' has no gt_track: cannot order by track")
+    vi = problem.view_index
+    ids = np.unique(gt[gt >= 0])
+    if ids.size:
+        n_views = np.array([np.unique(vi[gt == i]).size for i in ids])
+        shared = ids[n_views >= 2]
+        rank = np.lexsort((shared, -n_views[n_views >= 2]))
+        keep_ids = np.sort(shared[rank[:max_per_view]])
+    else:
+        keep_ids = np.zeros(0, np.int64)
+    rows, offsets = [], [0]
+    n_extra = max(2, max_per_view // 6)
+    for v in range(problem.n_views):
+        idx = np.arange(*problem.view_offsets[v:v + 2])
+        g = gt[idx]
+        tracked = idx[np.isin(g, keep_ids)]
+        tracked = tracked[np.argsort(gt[tracked], kind="stable")][:max_per_view]
+        room = max(0, min(n_extra, max_per_view - tracked.size))
+        others = np.r_[idx[g == -1], idx[g == -2], idx[(g >= 0) & ~np.isin(g, keep_ids)]][:room]
+        sel = np.r_[tracked, others].astype(np.int64)
+        rows.append(sel)
+        offsets.append(offsets[-1] + sel.size)
+    return np.concatenate(rows), np.asarray(offsets)
+
+
+def plot_similarity(model, problem: Problem, path, graph_config: GraphConfig = GraphConfig(),
+                    feature_config: FeatureConfig = FeatureConfig(), max_per_view: int = 60,
+                    title: str = "") -> Path:
+    """Input graph A, output EEᵀ and ground truth XXᵀ of one problem, blockwise by view,
+    keypoints ordered by ground-truth track (:func:`similarity_order`; larger problems show
+    a subset). The network runs on the whole problem."""
+    rows, offsets = similarity_order(problem, max_per_view)
+    if rows.size > 1500:
+        raise ValueError(f"{rows.size} keypoints are too many for a similarity figure; lower max_per_view")
+    E, graph = _embed(model, problem, graph_config, feature_config)
+    A = graph.adjacency().toarray()[np.ix_(rows, rows)]
+    S = E[rows] @ E[rows].T
+    g = problem.gt_track[rows]
+    X = ((g[:, None] == g[None, :]) & (g[:, None] >= 0)).astype(np.float64)
+    np.fill_diagonal(X, 1.0)
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(14.0, 4.9), layout="constrained")
+    panels = [(A, "input graph A (descriptor similarities)"), (S, "GCN output EEᵀ (clipped to [0, 1])"),
+              (X, "ground truth XXᵀ")]
+    for ax, (M, name) in zip(axes, panels):
+        im = ax.imshow(M, vmin=0.0, vmax=1.0, cmap="magma", interpolation="nearest")
+        for o in offsets[1:-1]:
+            ax.axhline(o - 0.5, color="w", lw=0.8)
+            ax.axvline(o - 0.5, color="w", lw=0.8)
+        centers = (offsets[:-1] + offsets[1:]) / 2.0
+        ax.set_xticks(centers)
+        ax.set_xticklabels([f"view {v}" for v in range(len(centers))], fontsize=8)
+        ax.set_yticks(centers)
+        ax.set_yticklabels([f"view {v}" for v in range(len(centers))], fontsize=8, rotation=90, va="center")
+        ax.set_title(name, fontsize=10)
+    fig.colorbar(im, ax=list(axes), fraction=0.015, pad=0.01, shrink=0.9)
+    shown = f"{rows.size} of {problem.n_keypoints}" if rows.size < problem.n_keypoints else f"all {rows.size}"
+    fig.suptitle(title or f"{problem.name or 'problem'}: {shown} keypoints, views in blocks, "
+                          f"ordered by ground-truth track", fontsize=11)
+    return _save(fig, path)
+
+
+def cross_view_similarities(E: np.ndarray, problem: Problem) -> Tuple[np.ndarray, np.ndarray]:
+    """EEᵀ over pairs in different views: (same scene point, different points).
+
+    "Different" pairs have both ends labelled (>= 0 or -1) and not the same point;
+    unlabelled (-2) keypoints are left out.
+    """
+    gt = problem.gt_track
+    if gt is None:
+        raise ValueError(f"problem '{problem.name}' has no gt_track")
+    same, diff = [], []
+    for a in range(problem.n_views):
+        for b in range(a + 1, problem.n_views):
+            ia = np.arange(*problem.view_offsets[a:a + 2])
+            ib = np.arange(*problem.view_offsets[b:b + 2])
+            ia, ib = ia[gt[ia] >= -1], ib[gt[ib] >= -1]
+            if not ia.size or not ib.size:
+                continue
+            S = E[ia] @ E[ib].T
+            eq = (gt[ia][:, None] == gt[ib][None, :]) & (gt[ia][:, None] >= 0)
+            same.append(S[eq])
+            diff.append(S[~eq])
+    cat = (lambda xs: np.concatenate(xs) if xs else np.zeros(0))  # noqa: E731
+    return cat(same), cat(diff)
+
+
+def plot_similarity_histograms(models, problems: Sequence[Problem], path,
+                               graph_config: GraphConfig = GraphConfig(),
+                               feature_config: FeatureConfig = FeatureConfig(), bins: int = 60,
+                               title: str = "") -> Path:
+    """Histograms of EEᵀ for cross-view pairs of the same point vs different points, pooled
+    over ``problems`` (labelled). ``models``: one model, or label -> model (or
+    label -> (model, meta) from :func:`model.load_checkpoint`, whose graph/feature settings
+    are then used): one panel each, e.g. with and without the epipolar loss."""
+    if not isinstance(models, Mapping):
+        models = {"GCN": models}
+    problems = [p for p in problems if p.gt_track is not None]
+    if not problems:
+        raise ValueError("no problem with ground truth (gt_track) for the histograms")
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(models), figsize=(5.2 * len(models), 3.9), squeeze=False)
+    edges = np.linspace(-1.0, 1.0, bins + 1)
+    for ax, (label, m) in zip(axes[0], models.items()):
+        gc, fc = graph_config, feature_config
+        if isinstance(m, tuple):
+            m, meta = m
+            gc, fc = meta.get("graph_config", gc), meta.get("feature_config", fc)
+        same, diff = [], []
+        for p in problems:
+            E, _ = _embed(m, p, gc, fc)
+            s, d = cross_view_similarities(E, p)
+            same.append(s)
+            diff.append(d)
+        same, diff = np.concatenate(same), np.concatenate(diff)
+        for vals, name, color in ((diff, "different points", "tab:blue"), (same, "same point", "tab:orange")):
+            if vals.size:
+                ax.hist(np.clip(vals, -1, 1), bins=edges, density=True, alpha=0.6, color=color,
+                        label=f"{name} (n={vals.size}, mean {vals.mean():.2f})")
+        ax.set_yscale("log")
+        ax.set_xlabel("similarity  (EEᵀ)ᵢⱼ")
+        ax.set_ylabel("density")
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.suptitle(title or f"cross-view similarities over {len(problems)} problem(s)", fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+# ---------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m gcn_match_ros.plots",
+                                description="Training curves of runs, and figures of their best models.")
+    p.add_argument("runs", nargs="+", type=Path, help="run folders (with history.json)")
+    p.add_argument("-o", "--out", required=True, type=Path, help="curves PNG")
+    p.add_argument("--labels", nargs="+", help="legend names, one per run")
+    p.add_argument("--data", nargs="+", help="labelled problems for --pr/--similarity/--histograms "
+                                             "(problem files, bags, synth:PRESET[:VIEWS])")
+    p.add_argument("--count", type=int, default=16, help="problems taken from --data")
+    p.add_argument("--pr", type=Path, help="precision-recall PNG of the runs' best.pt (+ mutual NN)")
+    p.add_argument("--similarity", type=Path, help="similarity-matrix PNG (first run, first problem)")
+    p.add_argument("--histograms", type=Path, help="same/different similarity histograms PNG")
+    args = p.parse_args(argv)
+    try:
+        labels = args.labels or [r.resolve().name for r in args.runs]
+        print(plot_history(args.runs, args.out, labels=labels))
+        if args.pr or args.similarity or args.histograms:
+            if not args.data:
+                raise ValueError("--pr, --similarity and --histograms need --data")
+            from itertools import islice
+
+            from .model import load_checkpoint
+            from .train import data_source
+
+            problems = [q for q in islice(data_source(args.data, train=False)(0), args.count)
+                        if q.gt_track is not None]
+            if not problems:
+                raise ValueError("--data holds no problems with ground truth")
+            ckpts = {lab: r / "best.pt" for lab, r in zip(labels, args.runs)}
+            loaded = {lab: load_checkpoint(c) for lab, c in ckpts.items()}
+            if args.pr:
+                plot_pr(ckpts, problems, args.pr, extra_methods=["nn"])
+                print(args.pr)
+            if args.similarity:
+                model, meta = loaded[labels[0]]
+                plot_similarity(model, problems[0], args.similarity, meta["graph_config"], meta["feature_config"])
+                print(args.similarity)
+            if args.histograms:
+                plot_similarity_histograms(loaded, problems, args.histograms)
+                print(args.histograms)
+    except (ValueError, OSError) as exc:
+        print(f"plots: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
