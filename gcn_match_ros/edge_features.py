@@ -1,0 +1,201 @@
+"""Candidate edges and their features for the learned edge scorer (no poses, no labels).
+
+For every pair of views (i, j) the candidates are
+
+- each keypoint's top-``k`` descriptor neighbours in the other view (both directions), and
+- optionally geometry-guided candidates: a pose-free two-view model (homography and
+  fundamental matrix, OpenCV USAC-MAGSAC, :mod:`geometry_verify`) is fitted on the
+  confident pairs (mutual nearest neighbours passing Lowe's ratio 0.8); every keypoint
+  then also proposes the keypoint of the other view nearest to its homography transfer
+  and the descriptor-best keypoint within ``guide_px`` of its epipolar line.
+
+Per candidate edge (a, b) the features (:data:`EDGE_FEATURES`) are: descriptor cosine,
+Lowe ratio from each side, rank from each side, mutual-NN flag, the confident-edge flag,
+triangle support (fraction of third views k with some c such that a–c and c–b are both
+candidates; and the same on the confident edges only), and the geometric residuals (in
+pixels, squashed) of the edge under the fitted H and F, plus whether a model was found.
+Everything here is computed from the problem's keypoints and descriptors only, in
+training and at test time alike.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Dict, Optional
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from .graph import normalize_descriptors
+from .problem import Problem
+
+__all__ = ["EdgeConfig", "EdgeSet", "candidate_edges", "EDGE_FEATURES"]
+
+EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
+                 "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
+
+
+@dataclasses.dataclass(frozen=True)
+class EdgeConfig:
+    """k: descriptor candidates per keypoint and view; geometry: fit H/F per view pair and
+    add geometric features; guided: add geometry-guided candidates; guide_px: their
+    tolerance; ratio: Lowe ratio of the confident seed pairs."""
+
+    k: int = 4
+    geometry: bool = True
+    guided: bool = True
+    guide_px: float = 3.0
+    ratio: float = 0.8
+    normalization: str = "rootsift"
+
+    def to_dict(self) -> Dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass
+class EdgeSet:
+    """Undirected candidate edges rows < cols (global indices) and their (M, F) features.
+
+    ``res_px`` (M,) is the smaller geometric residual in pixels (inf without a model)."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    features: np.ndarray
+    res_px: np.ndarray
+    confident: np.ndarray
+
+
+def _squash(d: np.ndarray) -> np.ndarray:
+    return np.log1p(np.minimum(d, 1e3)) / np.log1p(1e3)
+
+
+def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> EdgeSet:
+    """Candidate edges of ``problem`` with their features (see the module docstring)."""
+    from .geometry_verify import fit_pair, residuals
+
+    desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
+    offs = problem.view_offsets
+    V = problem.n_views
+    kp = problem.keypoints.astype(np.float64)
+    n = problem.n_keypoints
+    parts = []
+    for i in range(V):
+        a0, a1 = int(offs[i]), int(offs[i + 1])
+        for j in range(i + 1, V):
+            b0, b1 = int(offs[j]), int(offs[j + 1])
+            na, nb = a1 - a0, b1 - b0
+            if na < 2 or nb < 2:
+                continue
+            sim = (desc[a0:a1] @ desc[b0:b1].T).numpy()
+            k = min(config.k, na, nb)
+            # top candidates from each side
+            ir = np.argpartition(-sim, k - 1, axis=1)[:, :k]
+            ic = np.argpartition(-sim, k - 1, axis=0)[:k, :]
+            top2r = -np.partition(-sim, 1, axis=1)[:, :2]
+            top2c = -np.partition(-sim, 1, axis=0)[:2, :]
+            best_r, sec_r = top2r.max(1), top2r.min(1)
+            best_c, sec_c = top2c.max(0), top2c.min(0)
+            nn_r = sim.argmax(1)
+            nn_c = sim.argmax(0)
+            ea = np.concatenate([np.repeat(np.arange(na), k), ic.T.ravel()])
+            eb = np.concatenate([ir.ravel(), np.repeat(np.arange(nb), k)])
+            mutual_ab = (nn_c[nn_r] == np.arange(na))
+            d = lambda c: np.sqrt(np.maximum(2 - 2 * c, 0))
+            ratio_r = d(best_r) / np.maximum(d(sec_r), 1e-9)
+            ratio_c = d(best_c) / np.maximum(d(sec_c), 1e-9)
+            conf_a = np.flatnonzero(mutual_ab & (ratio_r < config.ratio) & (ratio_c[nn_r] < config.ratio))
+            conf_b = nn_r[conf_a]
+            model = None
+            if config.geometry:
+                model = fit_pair(kp[a0:a1][conf_a], kp[b0:b1][conf_b])
+                model = model.selected() if model is not None else None
+            guided = np.zeros(ea.shape[0], bool)
+            if config.guided and model is not None:
+                ga, gb = _guided(sim, kp[a0:a1], kp[b0:b1], model, config.guide_px)
+                ea = np.concatenate([ea, ga])
+                eb = np.concatenate([eb, gb])
+                guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
+            key = ea * nb + eb
+            uniq, first = np.unique(key, return_index=True)
+            g2 = np.zeros(uniq.shape[0], bool)
+            np.logical_or.at(g2, np.searchsorted(uniq, key), guided)
+            ea, eb = uniq // nb, uniq % nb
+            s = sim[ea, eb]
+            rank_a = (sim[ea] > s[:, None]).sum(1)
+            rank_b = (sim[:, eb].T > s[:, None]).sum(1)
+            rat_a = d(s) / np.maximum(np.where(rank_a == 0, d(sec_r[ea]), d(best_r[ea])), 1e-9)
+            rat_b = d(s) / np.maximum(np.where(rank_b == 0, d(sec_c[eb]), d(best_c[eb])), 1e-9)
+            mutual = (rank_a == 0) & (rank_b == 0)
+            conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
+            if model is not None:
+                rh, rf = residuals(model, kp[a0:a1][ea], kp[b0:b1][eb])
+                has = 2.0 if model.planar else 1.0
+            else:
+                rh = rf = np.full(ea.shape[0], np.inf)
+                has = 0.0
+            parts.append((ea + a0, eb + b0, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5),
+                          rank_a, rank_b, mutual, conf, rh, rf, has, g2))
+    if not parts:
+        z = np.zeros(0, np.int64)
+        return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool))
+    cols = list(zip(*parts))
+    rows = np.concatenate(cols[0]); colsi = np.concatenate(cols[1])
+    s, ra, rb = (np.concatenate(c) for c in cols[2:5])
+    rka, rkb = (np.concatenate(c).astype(np.float64) for c in cols[5:7])
+    mutual, conf = np.concatenate(cols[7]), np.concatenate(cols[8])
+    rh, rf = np.concatenate(cols[9]), np.concatenate(cols[10])
+    hasm = np.concatenate([np.full(len(p[0]), p[11]) for p in parts])
+    has, planar = (hasm > 0).astype(np.float64), (hasm == 2).astype(np.float64)
+    guided = np.concatenate(cols[12])
+    view = problem.view_index
+    tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool))
+    tri_conf = _triangle_support(n, V, view, rows, colsi, conf)
+    rmin = np.minimum(rh, rf)
+    feats = np.stack([s, ra, rb, np.minimum(rka, 10) / 10, np.minimum(rkb, 10) / 10, mutual, conf,
+                      tri_all, tri_conf, _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided], axis=1)
+    return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
+
+
+def _guided(sim, xa, xb, model, px):
+    """Geometry-guided candidates: nearest keypoint to the H transfer (both directions) and
+    the descriptor-best keypoint within ``px`` of the epipolar line (both directions)."""
+    from .geometry_verify import transfer, epipolar_distance_matrix
+    out_a, out_b = [], []
+    if model.H is not None:
+        pa = transfer(model.H, xa)
+        dab = np.linalg.norm(pa[:, None, :] - xb[None, :, :], axis=2)
+        j = dab.argmin(1)
+        ok = dab[np.arange(len(xa)), j] < px
+        out_a.append(np.flatnonzero(ok)); out_b.append(j[ok])
+        pb = transfer(np.linalg.inv(model.H), xb)
+        dba = np.linalg.norm(pb[:, None, :] - xa[None, :, :], axis=2)
+        i = dba.argmin(1)
+        ok = dba[np.arange(len(xb)), i] < px
+        out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
+    if model.F is not None:
+        D = epipolar_distance_matrix(model.F, xa, xb)
+        m = np.where(D < px, sim, -np.inf)
+        j = m.argmax(1)
+        ok = np.isfinite(m[np.arange(len(xa)), j])
+        out_a.append(np.flatnonzero(ok)); out_b.append(j[ok])
+        i = m.argmax(0)
+        ok = np.isfinite(m[i, np.arange(len(xb))])
+        out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
+    if not out_a:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_a).astype(np.int64), np.concatenate(out_b).astype(np.int64)
+
+
+def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
+    """Fraction of third views closing a triangle with each edge through ``mask`` edges."""
+    if V < 3:
+        return np.zeros(rows.shape[0])
+    r, c = rows[mask], cols[mask]
+    A = sp.csr_matrix((np.ones(2 * r.shape[0]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
+    A.data[:] = 1.0
+    count = np.zeros(rows.shape[0])
+    for k in range(V):
+        sel = sp.diags((view == k).astype(np.float64))
+        P = (A @ sel @ A).tocsr()
+        count += np.asarray(P[rows, cols]).ravel() > 0
+    return count / (V - 2)

@@ -1,0 +1,110 @@
+"""The learned matcher: a trained GCN embeds the keypoints; EEᵀ scores the pairs.
+
+The checkpoint carries the graph and feature settings the network was trained with,
+so the input is rebuilt exactly as in training. Scores are computed one view-pair
+block at a time (never N×N) and only each keypoint's best candidates per view are
+kept, then rounded with the shared greedy conflict-free merging.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from pathlib import Path
+
+import torch
+
+from ..graph import CorrespondenceGraph, GraphConfig
+from ..problem import Problem
+from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
+
+__all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT"]
+
+#: The model shipped inside the package (trained by the command in models/README.md).
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "models" / "default.pt"
+
+
+@dataclasses.dataclass
+class GCNSolverConfig(SolverConfig):
+    """Attributes:
+        graph: "checkpoint" (the graph the model was trained on) or a preset name.
+        checkpoint: path of a checkpoint; "" = the shipped default model.
+        top_k: candidates kept per keypoint and view in the soft output.
+        floor: scores at or below it are not listed.
+        device: torch device for the forward pass ("cpu", "cuda").
+    """
+
+    graph: str = "checkpoint"
+    threshold: float = -1.0  # < 0: the checkpoint's config["solver"]["threshold"], else 0.5
+    checkpoint: str = ""
+    top_k: int = 8
+    floor: float = 0.01
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
+            raise ValueError(f"unknown graph '{self.graph}'; choose 'checkpoint' or one of {sorted(GRAPH_PRESETS)}")
+        if not (0.0 <= self.threshold <= 1.0 or self.threshold == -1.0):
+            raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
+        if self.top_k < 1:
+            raise ValueError(f"top_k must be >= 1, got {self.top_k}")
+
+
+@functools.lru_cache(maxsize=4)
+def _load(path: str, device: str, mtime: float):
+    from ..model import load_checkpoint
+
+    model, meta = load_checkpoint(path, map_location=device)
+    return model.to(device).eval(), meta
+
+
+@register
+class GCNSolver(Solver):
+    """Phillips & Daniilidis' GCN: unit embeddings E, pair scores (EEᵀ)_ab clipped to [0, 1]."""
+
+    name = "gcn"
+    Config = GCNSolverConfig
+
+    def __init__(self, config=None, **settings) -> None:
+        super().__init__(config, **settings)
+        path = os.fspath(self.config.checkpoint or DEFAULT_CHECKPOINT)
+        # mtime in the cache key: a retrained file at the same path is reloaded.
+        mtime = os.path.getmtime(path) if os.path.isfile(path) else 0.0
+        self.model, self.meta = _load(path, self.config.device, mtime)
+        self.checkpoint_path = path
+        if self.config.threshold < 0:
+            # the rounding threshold selected with the model (validation split), if it has one
+            solver_cfg = self.meta["config"].get("solver") or {}
+            self.config = dataclasses.replace(self.config, threshold=float(solver_cfg.get("threshold", 0.5)))
+
+    @property
+    def graph_config(self) -> GraphConfig:
+        if self.config.graph == "checkpoint":
+            return self.meta["graph_config"]
+        return GRAPH_PRESETS[self.config.graph]
+
+    def describe(self) -> str:
+        base = super().describe()
+        return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + \
+            f"model={Path(self.checkpoint_path).name}"
+
+    def match(self, problem: Problem, graph: CorrespondenceGraph):
+        from ..model import embed_problem
+
+        if problem.n_keypoints == 0:
+            return SoftMatches.from_graph(graph), None
+        with torch.inference_mode():
+            emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
+                                   graph=graph)
+            if getattr(self.model, "edge_head", None) is not None:
+                # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
+                from ..edge_head import edge_config_of, edge_inputs
+
+                es, _ = edge_inputs(problem, edge_config_of(self.model))
+                if es.rows.shape[0] == 0:
+                    return SoftMatches.from_graph(graph, values=graph.weights * 0), None
+                logits = self.model.score_edges(torch.from_numpy(emb), torch.from_numpy(es.rows),
+                                                torch.from_numpy(es.cols), torch.from_numpy(es.features))
+                return SoftMatches(es.rows, es.cols, torch.sigmoid(logits).numpy()), None
+        return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
+                                          top_k=self.config.top_k), None
