@@ -63,6 +63,7 @@ get ``/<cam>/pose``.
 """
 from __future__ import annotations
 
+import array
 import dataclasses
 import functools
 import math
@@ -76,12 +77,12 @@ from typing import Dict, Iterator, List, Mapping, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from .windowing import Frame, WindowAssembler, WindowConfig, validate_frame
+from .windowing import Frame, FrameError, WindowAssembler, WindowConfig, validate_frame
 
 __all__ = [
     "BagError", "BagContents", "BagInfo", "typestore", "ensure_type", "find_msg_file",
     "write_scene_bag", "read_bag", "bag_windows", "bag_info", "iter_raw", "window_labels",
-    "convert_scene_to_bag", "frame_from_keypoints_msg", "keypoints_msg", "rt_to_pose",
+    "convert_scene_to_bag", "frame_from_keypoints_msg", "message_array", "HARD_MAX_KEYPOINTS", "keypoints_msg", "rt_to_pose",
     "pose_to_rt", "quat_to_matrix", "matrix_to_quat", "restamp_cdr", "has_header",
     "stamp_to_ns", "ns_to_stamp", "KEYPOINTS_TYPE", "LABELS_TYPE", "CAMERA_INFO_TYPE",
     "POSE_TYPE", "BINARY_DESCRIPTORS",
@@ -98,6 +99,10 @@ HEADER_TYPE = "std_msgs/msg/Header"
 WORLD_FRAME = "world"
 BINARY_DESCRIPTORS = ("orb", "brief", "brisk", "akaze", "freak")
 DESCRIPTOR_FLOAT, DESCRIPTOR_BINARY = 0, 1
+
+#: Keypoints messages announcing more keypoints than this are rejected (``too_large``)
+#: before any array is touched; the node's ``max_keypoints`` then trims what is accepted.
+HARD_MAX_KEYPOINTS = 1_000_000
 STORAGES = ("mcap", "sqlite3")
 _SRC_MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"
 
@@ -328,35 +333,94 @@ def keypoints_msg(frame: Frame, descriptor_name: str = "sift", store=None):
         descriptors_binary=packed if binary else np.zeros(0, np.uint8))
 
 
-def frame_from_keypoints_msg(msg) -> Frame:
-    """A Frame from a Keypoints message (rosbags-decoded or an rclpy message: both have the
-    same fields). Optional arrays that are empty become None; an all-zero
-    ``camera_info.k`` gives ``K = None``; a zero width/height gives ``image_size = None``;
-    binary descriptors are unpacked to 0/1 floats (the problem format's convention).
-    R, t stay None (poses travel on their own topic)."""
-    n, dim = int(msg.count), int(msg.descriptor_dim)
-    kp = np.asarray(msg.keypoints, dtype=np.float32)
-    kp = kp.reshape(-1, 2) if kp.size % 2 == 0 else kp.reshape(1, -1)
-    if int(msg.descriptor_type) == DESCRIPTOR_BINARY:
+def message_array(field, dtype) -> np.ndarray:
+    """Read-only numpy view of a message array field (array.array, bytes, numpy array or list)."""
+    if isinstance(field, (array.array, bytes, bytearray, memoryview)):
+        return np.frombuffer(field, dtype)
+    return np.asarray(field, dtype)
+
+
+def frame_from_keypoints_msg(msg, camera_id: Optional[str] = None,
+                             max_count: int = HARD_MAX_KEYPOINTS) -> Frame:
+    """A ``Keypoints`` message as a :class:`Frame` (arrays are views of the message).
+
+    Works on rclpy messages and on rosbags-decoded ones alike (same fields); only
+    attributes are read, so this core module never imports rclpy.
+
+    Args:
+        msg: the message.
+        camera_id: the camera the message arrived for (its topic); an empty
+            ``msg.camera_id`` takes it, a different one is rejected (``camera_mismatch``).
+        max_count: messages announcing more keypoints are rejected (``too_large``).
+
+    Shapes of the result: keypoints (N, 2) float32, descriptors (N, D) float32 (binary
+    descriptors unpacked to 0/1), scales/orientations/scores (N,) or None, K (3, 3) or None
+    (all-zero ``camera_info.k`` = uncalibrated), image_size (width, height) or None.
+
+    Raises:
+        FrameError: malformed message, with a counter ``reason``. Content checks (empty,
+            NaN/inf, descriptor dimension of the window, ``max_keypoints``) are left to
+            :func:`gcn_match_ros.windowing.validate_frame`, which the assembler runs.
+    """
+    cam = msg.camera_id
+    if camera_id is not None:
+        if cam and cam != camera_id:
+            raise FrameError("camera_mismatch",
+                             f"camera_id '{cam}' arrived on the topic of camera '{camera_id}'")
+        cam = camera_id
+    if not cam:
+        raise FrameError("camera_mismatch", "message has an empty camera_id")
+    n = int(msg.count)
+    if n > max_count:
+        raise FrameError("too_large", f"count {n} exceeds the limit of {max_count} keypoints")
+    stamp = _time_stamp(msg.header.stamp)
+    kp = message_array(msg.keypoints, np.float32)
+    if kp.size != 2 * n:
+        raise FrameError("count_mismatch", f"keypoints: {kp.size} values for count {n} (expected {2 * n})")
+    dim = int(msg.descriptor_dim)
+    if msg.descriptor_type == DESCRIPTOR_FLOAT:
+        if len(msg.descriptors_binary):
+            raise FrameError("bad_shape", "descriptors_binary must be empty for float descriptors")
+        raw = message_array(msg.descriptors, np.float32)
+        if n and dim == 0:
+            raise FrameError("descriptor_dim", "descriptor_dim is 0 but the frame has keypoints")
+        if raw.size != n * dim:
+            raise FrameError("count_mismatch",
+                             f"descriptors: {raw.size} values for count {n} x dim {dim} (expected {n * dim})")
+        desc = raw.reshape(n, dim)
+    elif msg.descriptor_type == DESCRIPTOR_BINARY:
+        if len(msg.descriptors):
+            raise FrameError("bad_shape", "descriptors must be empty for binary descriptors")
+        raw = message_array(msg.descriptors_binary, np.uint8)
+        if n and dim == 0:
+            raise FrameError("descriptor_dim", "descriptor_dim is 0 but the frame has keypoints")
         nbytes = (dim + 7) // 8
-        raw = np.asarray(msg.descriptors_binary, dtype=np.uint8)
-        desc = (np.unpackbits(raw.reshape(n, nbytes), axis=1)[:, :dim].astype(np.float32)
-                if nbytes and raw.size == n * nbytes else raw.astype(np.float32).reshape(n, -1))
+        if raw.size != n * nbytes:
+            raise FrameError("count_mismatch", f"descriptors_binary: {raw.size} bytes for count {n} x "
+                                               f"{nbytes} bytes (dim {dim} bits, expected {n * nbytes})")
+        desc = np.unpackbits(raw.reshape(n, nbytes), axis=1)[:, :dim].astype(np.float32)
     else:
-        d = np.asarray(msg.descriptors, dtype=np.float32)
-        desc = d.reshape(n, dim) if dim and d.size == n * dim else d.reshape(n, -1) if n else d.reshape(0, dim)
+        raise FrameError("descriptor_type", f"unknown descriptor_type {msg.descriptor_type} "
+                                            f"(expected {DESCRIPTOR_FLOAT} or {DESCRIPTOR_BINARY})")
 
-    def opt(a):
-        a = np.asarray(a, dtype=np.float32)
-        return a if a.size else None
+    def optional(field, name):
+        a = message_array(field, np.float32)
+        if a.size == 0:
+            return None
+        if a.size != n:
+            raise FrameError("bad_shape", f"{name}: {a.size} values for count {n} (expected {n} or 0)")
+        return a
 
-    info = msg.camera_info
-    K = np.asarray(info.k, dtype=np.float64).reshape(3, 3)
-    size = (int(info.width), int(info.height))
-    return Frame(camera_id=str(msg.camera_id), stamp=_time_stamp(msg.header.stamp), keypoints=kp,
-                 descriptors=desc, frame_id=str(msg.header.frame_id), scales=opt(msg.scales),
-                 orientations=opt(msg.orientations), scores=opt(msg.scores),
-                 K=None if not np.any(K) else K, image_size=size if size[0] > 0 and size[1] > 0 else None)
+    k = np.asarray(msg.camera_info.k, np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(k)):
+        raise FrameError("bad_intrinsics", "camera_info.k contains NaN or inf")
+    K = k if np.any(k != 0.0) else None
+    w, h = int(msg.camera_info.width), int(msg.camera_info.height)
+    return Frame(camera_id=cam, stamp=stamp, keypoints=kp.reshape(n, 2), descriptors=desc,
+                 frame_id=msg.header.frame_id, scales=optional(msg.scales, "scales"),
+                 orientations=optional(msg.orientations, "orientations"),
+                 scores=optional(msg.scores, "scores"), K=K,
+                 image_size=(w, h) if w > 0 and h > 0 else None)
 
 
 # --------------------------------------------------------------------------------------
@@ -797,7 +861,7 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
                 if msgtype == KEYPOINTS_TYPE:
                     msg = r.decode(raw, msgtype)
                     try:
-                        frame = frame_from_keypoints_msg(msg)
+                        frame = frame_from_keypoints_msg(msg, camera_id=str(msg.camera_id) or ns.strip("/") or topic)
                     except ValueError as exc:  # counts that do not fit the arrays
                         raise BagError(f"{path}: malformed Keypoints message on {topic} at "
                                        f"{_time_stamp(msg.header.stamp):.9f}: {exc}") from None

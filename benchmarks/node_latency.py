@@ -1,0 +1,318 @@
+#!/usr/bin/env python
+"""End-to-end latency and sustained throughput of the matcher node over real DDS.
+
+For every (cameras, keypoints per view) configuration this starts the matcher node as its
+own process (``python -m gcn_match_ros.ros.matcher_node``, own namespace, this machine
+only), publishes synchronised Keypoints frames of every camera at ``--rate`` Hz (all
+cameras stamped with the same capture time, SIFT-like 128-D descriptors of a synthetic
+3D scene: ``synthetic.rome16k``) and receives the MatchWindows in a subscriber:
+
+- latency = receive time of a window - its newest view stamp (capture -> consumer: DDS in,
+  windowing, graph, solver, rounding, packing, DDS out), p50 / p95 / max;
+- throughput = windows received per second over the measured interval;
+- drops: windows not received (of those sent), windows with fewer views than cameras,
+  and the node's own counters from /diagnostics (superseded / stale / errors, frames lost).
+
+The first ``--warmup`` seconds of each configuration are not measured. Prints a markdown
+table and writes it, with the command and the machine, to
+``benchmarks/results/node_latency.md``.
+
+Usage::
+
+    ./run.sh python benchmarks/node_latency.py                      # default solver (gcn if its model exists)
+    ./run.sh python benchmarks/node_latency.py --solver nn --cameras 4 --keypoints 500 --duration 20
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+GOAL = (4, 500, 0.050)  # cameras, keypoints per view, p95 seconds (with no drops at 10 Hz)
+
+
+def _parser():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--solver", default=None, help="solver spec (default: gcn if its model exists, else nn)")
+    p.add_argument("--cameras", type=int, nargs="+", default=[2, 4, 8])
+    p.add_argument("--keypoints", type=int, nargs="+", default=[250, 500, 1000], help="keypoints per view")
+    p.add_argument("--rate", type=float, default=10.0, help="capture rate, Hz")
+    p.add_argument("--duration", type=float, default=12.0, help="measured seconds per configuration")
+    p.add_argument("--warmup", type=float, default=2.0, help="seconds published before measuring")
+    p.add_argument("--input-qos", default="sensor_data", choices=("sensor_data", "reliable"),
+                   help="the node's input_qos parameter (default: the node's default)")
+    p.add_argument("--default-shm", action="store_true",
+                   help="keep Fast DDS's default 512 KiB shared-memory segment (no gcn_match_ros profile)")
+    p.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
+    p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "node_latency.md")
+    return p
+
+
+def _default_solver() -> str:
+    try:
+        from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT
+        if Path(DEFAULT_CHECKPOINT).is_file():
+            return "gcn"
+    except ImportError:
+        pass
+    return "nn"
+
+
+def _machine() -> str:
+    model = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
+    import torch
+    return (f"{os.cpu_count()} CPUs (nproc {len(os.sched_getaffinity(0))}), {model}; {platform.system()} "
+            f"{platform.release()}; Python {platform.python_version()}, torch {torch.__version__} "
+            f"({torch.get_num_threads()} threads); load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+
+
+def _frames(n_cams: int, n_kp: int, seed: int = 0):
+    """Keypoints messages (one per camera) of a synthetic scene, exactly ``n_kp`` per view."""
+    from gcn_match_ros.ros.conversions import frame_to_keypoints
+    from gcn_match_ros.synthetic import random_scene_problem, rome16k
+    from gcn_match_ros.windowing import Frame
+
+    p = random_scene_problem(rome16k(n_cams, n_points=n_kp), rng=seed)
+    msgs = []
+    for v in range(n_cams):
+        s = p.view_slice(v)
+        idx = np.arange(s.start, s.stop)[:n_kp]
+        f = Frame(camera_id=f"cam{v}", stamp=1.0, keypoints=p.keypoints[idx], descriptors=p.descriptors[idx],
+                  frame_id=f"cam{v}_optical_frame", scales=p.scales[idx], orientations=p.orientations[idx],
+                  K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]))
+        msgs.append(frame_to_keypoints(f, descriptor_name="sift"))
+    return msgs
+
+
+def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+
+    from gcn_match_msgs.msg import Keypoints, MatchWindow
+
+    ns = f"/bench{n_cams}x{n_kp}"
+    cams = [f"cam{v}" for v in range(n_cams)]
+    cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args", "-r", f"__ns:={ns}",
+           "-p", f"cameras:=[{','.join(cams)}]", "-p", f"solver:={solver}", "-p", f"input_qos:={args.input_qos}",
+           "-p", f"max_keypoints:={max(n_kp, 1024)}", "-p", "diagnostics_period:=0.5",
+           "--log-level", "warn"]
+    log = tempfile.NamedTemporaryFile("w+", prefix="node_latency-", suffix=".log", delete=False)
+    node_proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
+    msgs = _frames(n_cams, n_kp)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
+    reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    node = rclpy.create_node("bench", context=ctx, namespace=ns)
+    received = []  # (receive time ns, newest stamp ns, views, node total_seconds)
+    diag = {}
+
+    def on_window(m):
+        t = time.time_ns()
+        received.append((t, m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, len(m.camera_ids),
+                         m.total_seconds))
+
+    reports = [0]
+
+    def on_diag(m):
+        for st in m.status:
+            if st.hardware_id == f"{ns}/matcher_node":
+                diag.clear()
+                diag.update({kv.key: kv.value for kv in st.values})
+                reports[0] += 1
+
+    node.create_subscription(MatchWindow, "matcher_node/matches", on_window, reliable)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, reliable)
+    pubs = [node.create_publisher(Keypoints, f"{c}/keypoints", reliable) for c in cams]
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
+    spinner.start()
+    result = {"cameras": n_cams, "keypoints": n_kp}
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and node_proc.poll() is None and not (
+                all(p.get_subscription_count() > 0 for p in pubs)
+                and node.count_publishers(f"{ns}/matcher_node/matches") > 0):
+            time.sleep(0.02)
+        if node_proc.poll() is not None or time.monotonic() >= deadline:
+            log.seek(0)
+            raise RuntimeError(f"matcher node did not start:\n{log.read()[-2000:]}")
+        period = 1.0 / args.rate
+        n_ticks = int(round((args.warmup + args.duration) * args.rate))
+        measure_from = int(round(args.warmup * args.rate))
+        t_next = time.monotonic() + period
+        sent_stamps = []
+        for k in range(n_ticks):
+            delay = t_next - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)  # the capture clock of the simulated rig
+            t_next += period
+            now = time.time_ns()
+            sec, nsec = divmod(now, 1_000_000_000)
+            for m, pub in zip(msgs, pubs):
+                m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
+                pub.publish(m)
+            if k >= measure_from:
+                sent_stamps.append(now)
+        # Let the last windows arrive, then take the node's counters from a report after them.
+        end = time.monotonic() + 5.0
+        while time.monotonic() < end and (not received or received[-1][1] < sent_stamps[-1]):
+            time.sleep(0.01)
+        reports_then = reports[0]
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end and reports[0] < reports_then + 2:
+            time.sleep(0.01)
+        diag_end = dict(diag)
+    finally:
+        if node_proc.poll() is None:
+            node_proc.send_signal(signal.SIGINT)
+            try:
+                node_proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                node_proc.kill()
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+        spinner.join(2)
+        log.close()
+        os.unlink(log.name)
+
+    first = sent_stamps[0]
+    measured = [r for r in received if r[1] >= first]
+    stamps = {r[1] for r in measured}
+    lat = np.array([(r[0] - r[1]) * 1e-9 for r in measured])
+    comp = np.array([r[3] for r in measured])
+    span = (sent_stamps[-1] - sent_stamps[0]) * 1e-9 + 1.0 / args.rate
+    windows_dropped = {k[len("windows dropped "):]: int(v) for k, v in diag_end.items()
+                       if k.startswith("windows dropped ") and k != "windows dropped total" and v != "0"}
+    frames_dropped = {k[len("frames dropped "):]: int(v) for k, v in diag_end.items()
+                      if k.startswith("frames dropped ") and k != "frames dropped total" and v != "0"}
+    frames_in = sum(int(diag_end.get(f"frames received {c}", 0)) for c in cams)
+    frames_sent = n_ticks * n_cams
+    result.update(
+        sent=len(sent_stamps), received=len(stamps), partial=sum(1 for r in measured if r[2] < n_cams),
+        missing=len(sent_stamps) - len(stamps & set(sent_stamps)),
+        p50=float(np.percentile(lat, 50)) if lat.size else float("nan"),
+        p95=float(np.percentile(lat, 95)) if lat.size else float("nan"),
+        max=float(lat.max()) if lat.size else float("nan"),
+        compute=float(np.median(comp)) if comp.size else float("nan"),
+        throughput=len(stamps) / span, windows_dropped=windows_dropped, frames_dropped=frames_dropped,
+        frames_lost=max(0, frames_sent - frames_in) if diag_end else None)
+    return result
+
+
+def _fmt_drops(d: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in sorted(d.items())) or "0"
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    solver = args.solver or _default_solver()
+    from gcn_match_ros.ros import FASTDDS_PROFILE_ENV, use_large_shm
+
+    env = dict(os.environ)
+    if not args.default_shm:
+        use_large_shm(env)  # for the node and for this process (set below, before rclpy.init)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    domain = int(env.get("ROS_DOMAIN_ID") or random.SystemRandom().randint(1, 100))
+    env["ROS_DOMAIN_ID"] = str(domain)
+    env.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="node_latency-roslog-"))
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
+                       + ((FASTDDS_PROFILE_ENV,) if env.get(FASTDDS_PROFILE_ENV) else ())})
+    shm = ("Fast DDS profile " + env[FASTDDS_PROFILE_ENV]) if env.get(FASTDDS_PROFILE_ENV) else \
+        "Fast DDS defaults (512 KiB shared-memory segment)"
+    os.environ.pop("ROS_LOCALHOST_ONLY", None)
+    machine = _machine()
+    print(f"machine: {machine}", flush=True)
+    note = "" if args.solver or solver == "gcn" else " (gcn model not found: fell back to nn)"
+    print(f"solver: {solver}{note}; {args.rate:g} Hz, {args.duration:g} s measured per configuration, "
+          f"input_qos {args.input_qos}; {shm}", flush=True)
+    rows = []
+    t0 = time.monotonic()
+    for n_cams in args.cameras:
+        for n_kp in args.keypoints:
+            r = run_config(n_cams, n_kp, args, solver, env, domain)
+            rows.append(r)
+            print(f"  {n_cams} cameras x {n_kp} keypoints: p50 {1e3 * r['p50']:.1f} ms, p95 {1e3 * r['p95']:.1f} ms, "
+                  f"{r['throughput']:.1f} windows/s, {r['received']}/{r['sent']} windows, node drops "
+                  f"{_fmt_drops(r['windows_dropped'])}", flush=True)
+    header = ("| cameras | keypoints/view | windows received / sent | partial | latency p50 [ms] | p95 [ms] | "
+              "max [ms] | node compute p50 [ms] | throughput [windows/s] | windows dropped by the node | "
+              "frames lost / dropped |\n|---|---|---|---|---|---|---|---|---|---|---|")
+    lines = [header]
+    for r in rows:
+        lost = "?" if r["frames_lost"] is None else str(r["frames_lost"])
+        lines.append(f"| {r['cameras']} | {r['keypoints']} | {r['received']} / {r['sent']} | {r['partial']} | "
+                     f"{1e3 * r['p50']:.1f} | {1e3 * r['p95']:.1f} | {1e3 * r['max']:.1f} | "
+                     f"{1e3 * r['compute']:.1f} | {r['throughput']:.1f} | {_fmt_drops(r['windows_dropped'])} | "
+                     f"{lost} / {_fmt_drops(r['frames_dropped'])} |")
+    table = "\n".join(lines)
+    goal = [r for r in rows if (r["cameras"], r["keypoints"]) == GOAL[:2]]
+    verdict = ""
+    if goal:
+        g = goal[0]
+        ok = g["p95"] < GOAL[2] and g["missing"] == 0 and not g["windows_dropped"]
+        verdict = (f"Goal (p95 < {1e3 * GOAL[2]:.0f} ms at {GOAL[0]} cameras x {GOAL[1]} keypoints, no drops at "
+                   f"{args.rate:g} Hz): {'MET' if ok else 'NOT MET'} — p95 {1e3 * g['p95']:.1f} ms, "
+                   f"{g['missing']} windows missing, node drops {_fmt_drops(g['windows_dropped'])}.")
+    cmd = "python benchmarks/node_latency.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    doc = f"""# Matcher node: end-to-end latency and throughput
+
+Command: `{cmd.strip()}` (inside `./run.sh`), {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
+
+Machine: {machine}.
+
+Solver `{solver}`{note}; every camera publishes one Keypoints frame per capture at {args.rate:g} Hz
+(all stamped with the capture time; synthetic SIFT-like 128-D descriptors), {args.duration:g} s measured after
+{args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,
+publishers and the MatchWindow subscriber reliable, all on this machine; {shm}.
+Latency = window received by the subscriber − newest view stamp. "partial" = windows with fewer views
+than cameras; "windows dropped by the node" = its /diagnostics counters (`superseded`: a newer
+window replaced one waiting for the busy worker; `stale_window`); "frames lost" = frames sent
+but never received by the node (transport), "dropped" = frames it rejected. Timings depend on
+what else runs: mind the load average above (2 cores shared with other jobs inflate every number).
+
+{table}
+
+{verdict}
+"""
+    print()
+    print(table)
+    if verdict:
+        print(verdict)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.append and args.out.is_file():
+        doc = args.out.read_text().rstrip("\n") + "\n\n---\n\n" + doc
+    args.out.write_text(doc)
+    print(f"written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,419 @@
+"""End-to-end demo: a sample bag replayed into the matcher node, every window scored.
+
+``./run.sh demo`` (= ``python -m gcn_match_ros.demo``):
+
+1. starts the matcher node as its own process (``python -m gcn_match_ros.ros.matcher_node``,
+   parameters as ROS arguments; default solver ``gcn`` with the model shipped in the
+   package);
+2. replays a sample bag from ``bags/`` with ``bag_play --restamp`` (stamps shifted to now,
+   so latencies are real) — keypoint frames of 3 cameras and their ground-truth labels;
+3. a scoring consumer in this process receives every ``MatchWindow`` and the replayed
+   keypoints, takes each view's ground truth from the bag file (the labels of
+   ``/<cam>/gt_labels``: scene-global point ids, read with :mod:`gcn_match_ros.bags`) and
+   prints precision / recall / F1 of the tracks and the latency per window, then a summary
+   (with the node's own drop counters from ``/diagnostics``);
+4. draws the matches of every window across its views into ``out/demo_matches.png``
+   (on the dataset images when ``../shared/data`` has them, else on blank canvases of the
+   image size), stops the node with SIGINT and exits 0.
+
+Everything stays on this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) on a
+domain of its own (``ROS_DOMAIN_ID`` if set, else a random one).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+CAMERAS = ("cam0", "cam1", "cam2")
+DEFAULT_BAG = "oxford_graf_sift.mcap"
+
+
+def _bag_dirs() -> List[Path]:
+    dirs = [REPO / "bags"]
+    try:  # an installed package (colcon / ament): <prefix>/share/gcn_match_ros/bags
+        from ament_index_python.packages import get_package_share_directory
+        dirs.append(Path(get_package_share_directory("gcn_match_ros")) / "bags")
+    except Exception:  # not on AMENT_PREFIX_PATH, or no ament_index_python
+        pass
+    dirs.append(Path(sys.prefix) / "share" / "gcn_match_ros" / "bags")
+    return list(dict.fromkeys(dirs))
+
+
+def _find_bag(name: str) -> Optional[Path]:
+    p = Path(name)
+    if p.exists():
+        return p
+    for d in _bag_dirs():
+        if (d / name).exists():
+            return d / name
+    return None
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m gcn_match_ros.demo", description=__doc__.split("\n\n")[0])
+    p.add_argument("--bag", default=DEFAULT_BAG, help=f"bag file (path, or a name in bags/; default {DEFAULT_BAG})")
+    p.add_argument("--solver", default="gcn", help="matching method, e.g. gcn, nn, spectral, 'nn:graph=mutual'")
+    p.add_argument("--checkpoint", default="", help="GCN checkpoint (default: the model shipped in the package)")
+    p.add_argument("--rate", type=float, default=1.0, help="bag playback rate (default 1: real time)")
+    p.add_argument("--out", type=Path, default=None, help="picture path (default out/demo_matches.png)")
+    p.add_argument("--data-root", type=Path, default=REPO.parent / "shared" / "data",
+                   help="dataset root holding the bag's images (for the picture)")
+    p.add_argument("--timeout", type=float, default=90.0, help="give up after this many seconds")
+    return p
+
+
+def _log(text: str) -> None:
+    print(text, flush=True)
+
+
+# ---------------------------------------------------------------------------------------
+# Scoring consumer (rclpy node in this process)
+# ---------------------------------------------------------------------------------------
+class _Collector:
+    """Subscribes the matcher's output, the replayed keypoints and labels, and /diagnostics."""
+
+    def __init__(self, domain_id: int, cameras) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+
+        from gcn_match_msgs.msg import Keypoints, MatchWindow
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("demo_scorer", context=self.ctx)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.windows: List[Tuple[object, float]] = []  # (MatchWindow, receive wall time)
+        # (camera, stamp ns) -> (Keypoints message, its index among the camera's frames)
+        self.keypoints: Dict[Tuple[str, int], Tuple[object, int]] = {}
+        self.per_camera = collections.Counter()
+        self.diagnostics: List[dict] = []
+        self.node.create_subscription(MatchWindow, "/matcher_node/matches", self._on_window, qos)
+        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos)
+        for cam in cameras:
+            self.node.create_subscription(Keypoints, f"/{cam}/keypoints", self._on_keypoints, qos)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+
+    def _on_keypoints(self, msg) -> None:
+        # Frames of one camera arrive in bag order (reliable, one publisher): the i-th message
+        # of a camera is frame i of that camera in the bag, whatever the restamping did.
+        self.keypoints[_key(msg.camera_id, msg.header.stamp)] = (msg, self.per_camera[msg.camera_id])
+        self.per_camera[msg.camera_id] += 1
+
+    def _on_window(self, msg) -> None:
+        self.windows.append((msg, time.time()))
+
+    def _on_diag(self, msg) -> None:
+        for st in msg.status:
+            if st.hardware_id == "/matcher_node":
+                self.diagnostics.append({kv.key: kv.value for kv in st.values})
+
+    def spin_until(self, cond, timeout: float) -> bool:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if cond():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return bool(cond())
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+def _key(camera_id: str, stamp) -> Tuple[str, int]:
+    return str(camera_id), int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+# ---------------------------------------------------------------------------------------
+# Scoring and drawing
+# ---------------------------------------------------------------------------------------
+def score_window(msg, col: _Collector, contents) -> Optional[dict]:
+    """P/R/F1 of one MatchWindow against the bag's ground-truth labels (scene-global point
+    ids of each view's frame); None when a view's frame or labels are unknown."""
+    from .bags import window_labels
+    from .metrics import score_result
+    from .problem import Problem, Result
+    from .ros.conversions import match_window_to_arrays
+
+    w = match_window_to_arrays(msg)
+    labels, kps, sources = [], [], []
+    for cam, stamp in zip(w.camera_ids, msg.view_stamps):
+        entry = col.keypoints.get(_key(cam, stamp))
+        if entry is None or entry[1] >= len(contents.labels.get(cam, [])):
+            return None
+        kp, index = entry
+        lab = contents.labels[cam][index]
+        if lab is None or len(lab) != int(kp.count):
+            return None
+        labels.append(np.asarray(lab, np.int64))
+        kps.append(kp)
+        sources.append(contents.sources[cam][index])
+    gt = window_labels(np.concatenate(labels))
+    if gt.shape[0] != w.n_keypoints:  # the node trimmed a frame (max_keypoints)
+        return None
+    n = w.n_keypoints
+    problem = Problem(view_offsets=w.view_offsets,
+                      keypoints=np.concatenate([np.frombuffer(k.keypoints, np.float32).reshape(-1, 2) for k in kps]),
+                      descriptors=np.zeros((n, 1), np.float32), gt_track=gt)
+    result = Result(track=w.track, pair_rows=w.pair_rows, pair_cols=w.pair_cols, pair_scores=w.pair_scores)
+    s = score_result(problem, result)
+    return {"P": s["P"], "R": s["R"], "F1": s["F1"], "AP": s["AP"], "arrays": w, "gt": gt,
+            "keypoints": kps, "sources": sources, "true_pairs": s["true_pairs"]}
+
+
+def draw_windows(rows: List[dict], out: Path, data_root: Path, height: int = 260) -> str:
+    """One row per window, its views side by side; lines join consecutive keypoints of each track
+    (green: same ground-truth point, red: different points, yellow: not labelled).
+    Returns what the views are drawn on."""
+    import cv2
+
+    on_images = True
+    row_imgs = []
+    for k, r in enumerate(rows):
+        w = r["arrays"]
+        tiles, scales, xoff = [], [], [0]
+        for v, kp in enumerate(r["keypoints"]):
+            img = None
+            src = r["sources"][v]
+            if src and (data_root / src).is_file():
+                img = cv2.imread(str(data_root / src), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                on_images = False
+                wd, ht = int(kp.camera_info.width) or 640, int(kp.camera_info.height) or 480
+                img = np.full((ht, wd), 40, np.uint8)
+            else:
+                img = (img * 0.6).astype(np.uint8)  # dim the image so the lines stand out
+            s = height / img.shape[0]
+            tile = cv2.cvtColor(cv2.resize(img, (int(round(img.shape[1] * s)), height)), cv2.COLOR_GRAY2BGR)
+            tiles.append(tile)
+            scales.append(s)
+            xoff.append(xoff[-1] + tile.shape[1] + 6)
+        canvas = np.full((height + 30, xoff[-1] - 6, 3), 255, np.uint8)
+        for v, tile in enumerate(tiles):
+            canvas[30:, xoff[v]:xoff[v] + tile.shape[1]] = tile
+        pts = np.concatenate([np.frombuffer(kp.keypoints, np.float32).reshape(-1, 2) * scales[v]
+                              + [xoff[v], 30] for v, kp in enumerate(r["keypoints"])])
+        for p in pts:
+            cv2.circle(canvas, (int(p[0]), int(p[1])), 1, (170, 170, 170), -1, cv2.LINE_AA)
+        gt = r["gt"]
+        counts = collections.Counter()
+        for t in range(w.track_count):
+            members = np.flatnonzero(w.track == t)  # in view order (global rows are view-major)
+            for a, b in zip(members[:-1], members[1:]):
+                if gt[a] == -2 or gt[b] == -2:
+                    color, kind = (0, 200, 230), "unlabelled"
+                elif gt[a] >= 0 and gt[a] == gt[b]:
+                    color, kind = (60, 200, 60), "correct"
+                else:
+                    color, kind = (40, 40, 230), "wrong"
+                counts[kind] += 1
+                cv2.line(canvas, tuple(int(x) for x in pts[a]), tuple(int(x) for x in pts[b]), color, 1, cv2.LINE_AA)
+        names = " | ".join(f"{c}: {Path(s).name or '?'}" for c, s in zip(w.camera_ids, r["sources"]))
+        title = (f"window {k + 1}  P {r['P']:.2f}  R {r['R']:.2f}  F1 {r['F1']:.2f}   lines: "
+                 f"{counts['correct']} correct, {counts['wrong']} wrong, {counts['unlabelled']} unlabelled   ({names})")
+        cv2.putText(canvas, title, (4, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        row_imgs.append(canvas)
+    width = max(r.shape[1] for r in row_imgs)
+    what = "dataset images" if on_images else "blank canvases of the image size (images not found)"
+    footer = np.full((28, width, 3), 255, np.uint8)
+    cv2.putText(footer, f"{rows[0]['arrays'].method}: tracks drawn on {what}; green = same ground-truth point, "
+                        f"red = different points, yellow = not labelled", (4, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    padded = [np.pad(r, ((0, 6), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in row_imgs]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(out), np.vstack(padded + [footer])):
+        raise OSError(f"cannot write {out}")
+    return what
+
+
+# ---------------------------------------------------------------------------------------
+# Main
+# ---------------------------------------------------------------------------------------
+def _check_model(solver: str, checkpoint: str) -> Optional[str]:
+    """A clear message when the gcn solver's model is missing, else None."""
+    if not solver.split(":")[0].strip() == "gcn":
+        return None
+    try:
+        from .solvers.gcn import DEFAULT_CHECKPOINT
+    except ImportError as exc:
+        return f"the gcn solver cannot be imported ({exc}); run with --solver nn to see the pipeline"
+    path = Path(checkpoint) if checkpoint else Path(DEFAULT_CHECKPOINT)
+    if not path.is_file():
+        which = "the checkpoint" if checkpoint else "the model shipped in the package"
+        return (f"{which} {path} is missing, so the gcn solver cannot start. Train one (see "
+                f"gcn_match_ros/models/README.md: benchmarks/train_default.py) or pass --checkpoint FILE; "
+                f"--solver nn runs the demo with the nearest-neighbour baseline instead")
+    return None
+
+
+def _percentile(values, q) -> float:
+    return float(np.percentile(values, q)) if len(values) else float("nan")
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    t_start = time.monotonic()
+    problem = _check_model(args.solver, args.checkpoint)
+    if problem:
+        _log(f"demo: error: {problem}")
+        return 1
+    bag = _find_bag(args.bag)
+    if bag is None:
+        _log(f"demo: error: bag '{args.bag}' not found (looked in {', '.join(str(d) for d in _bag_dirs())})")
+        return 1
+    from .bags import BagError, read_bag
+    from .windowing import WindowConfig
+
+    try:
+        contents = read_bag(bag, progress=False)
+    except BagError as exc:
+        _log(f"demo: error: {exc}")
+        return 1
+    cameras = tuple(contents.cameras)
+    expected = sum(1 for _ in contents.windows(WindowConfig(cameras=cameras), flush=False))
+    _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
+         f"{expected} windows; solver {args.solver}")
+
+    from .ros import FASTDDS_PROFILE_ENV, use_large_shm
+
+    env = dict(os.environ)
+    use_large_shm(env)  # bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    env.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
+    env.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="gcn_match_ros-demo-roslog-"))
+    env["PYTHONUNBUFFERED"] = "1"
+    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
+                       + ((FASTDDS_PROFILE_ENV,) if env.get(FASTDDS_PROFILE_ENV) else ())})
+    os.environ.pop("ROS_LOCALHOST_ONLY", None)
+    domain = int(env["ROS_DOMAIN_ID"])
+    out = args.out or ((REPO / "out") if (REPO / "setup.py").is_file() else Path.cwd() / "out") / "demo_matches.png"
+    node_log = out.parent / "demo_matcher_node.log"
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args",
+           "-p", f"cameras:=[{','.join(cameras)}]", "-p", f"solver:={args.solver}",
+           "-p", "diagnostics_period:=0.5",
+           # The replay is reliable and should be scored whole: best-effort (sensor_data) input
+           # can lose a fragmented ~200 KB Keypoints message now and then.
+           "-p", "input_qos:=reliable"]
+    if args.checkpoint:
+        cmd += ["-p", f"checkpoint:={args.checkpoint}"]
+    _log(f"demo: starting the matcher node (ROS_DOMAIN_ID={domain}, log: {node_log})")
+    log_fh = open(node_log, "w")
+    node = subprocess.Popen(cmd, env=env, stdout=log_fh, stderr=subprocess.STDOUT, cwd=REPO)
+    col = None
+    player = None
+    try:
+        col = _Collector(domain, cameras)
+        deadline = t_start + args.timeout
+        up = col.spin_until(lambda: node.poll() is not None or col.node.count_publishers("/matcher_node/matches") > 0,
+                            timeout=max(1.0, deadline - time.monotonic()))
+        if node.poll() is not None or not up:
+            log_fh.flush()
+            _log(f"demo: error: the matcher node did not start (exit {node.poll()}); its log:\n"
+                 + node_log.read_text()[-3000:])
+            return 1
+        _log(f"demo: matcher node up after {time.monotonic() - t_start:.1f} s; replaying {bag.name} "
+             f"(rate {args.rate:g}, stamps shifted to now)")
+        # Keypoints only (labels come from the bag file); each topic has two subscribers: the
+        # node and the scorer here, and bag_play waits until both are matched.
+        topics = [f"/{c}/keypoints" for c in cameras]
+        player = subprocess.Popen([sys.executable, "-m", "gcn_match_ros.ros.bag_play", str(bag), "--restamp",
+                                   "--rate", str(args.rate), "--quiet", "--topics", *topics,
+                                   "--wait-for-subscribers", "2", "--wait-for-all-acked", "3"],
+                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+        player_out: List[str] = []
+        reader = threading.Thread(target=lambda: player_out.extend(player.stdout), daemon=True)
+        reader.start()
+        col.spin_until(lambda: player.poll() is not None, timeout=max(1.0, deadline - time.monotonic()))
+        if player.poll() is None or player.returncode != 0:
+            _log(f"demo: error: bag_play failed (exit {player.poll()}):\n{''.join(player_out)[-2000:]}")
+            return 1
+        col.spin_until(lambda: len(col.windows) >= expected, timeout=min(15.0, max(1.0, deadline - time.monotonic())))
+        # One more node report, so its counters include the last window.
+        n_diag = len(col.diagnostics)
+        col.spin_until(lambda: len(col.diagnostics) > n_diag, timeout=3.0)
+    finally:
+        if player is not None and player.poll() is None:
+            player.terminate()
+        if node.poll() is None:
+            node.send_signal(signal.SIGINT)
+            try:
+                node.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                node.kill()
+                node.wait()
+        log_fh.close()
+        if col is not None:
+            col.close()
+
+    # -- report -----------------------------------------------------------------------------
+    rows = []
+    _log("")
+    _log(f"{'window':>6} {'views':>5} {'keypoints':>9} {'tracks':>6} {'P':>6} {'R':>6} {'F1':>6} "
+         f"{'latency':>9} {'compute':>9}")
+    t0 = None
+    for k, (msg, received) in enumerate(col.windows):
+        r = score_window(msg, col, contents)
+        w = r["arrays"] if r else None
+        lat_ms = 1e3 * msg.latency_seconds
+        if r is None:
+            _log(f"{k + 1:>6}  (no ground truth received for this window)")
+            continue
+        t0 = w.stamp if t0 is None else t0
+        r.update(latency=msg.latency_seconds, receive=received - w.stamp, compute=msg.total_seconds)
+        rows.append(r)
+        _log(f"{k + 1:>6} {w.n_views:>5} {w.n_keypoints:>9} {w.track_count:>6} {r['P']:>6.3f} {r['R']:>6.3f} "
+             f"{r['F1']:>6.3f} {lat_ms:>6.1f} ms {1e3 * msg.total_seconds:>6.1f} ms")
+    diag = col.diagnostics[-1] if col.diagnostics else {}
+    drops = {k: v for k, v in diag.items() if k.startswith(("frames dropped ", "windows dropped ")) and v != "0"}
+    _log("")
+    if not rows:
+        _log(f"demo: error: no scored window received ({len(col.windows)} windows, {expected} expected); "
+             f"node log: {node_log}")
+        return 1
+    lat = [r["latency"] for r in rows]
+    method = rows[0]["arrays"].method
+    _log(f"summary ({method} on {bag.name}): {len(rows)}/{expected} windows scored; "
+         f"mean P {np.mean([r['P'] for r in rows]):.3f}, R {np.mean([r['R'] for r in rows]):.3f}, "
+         f"F1 {np.mean([r['F1'] for r in rows]):.3f}")
+    _log(f"  latency (newest view stamp -> published) p50 {1e3 * _percentile(lat, 50):.1f} ms, "
+         f"p95 {1e3 * _percentile(lat, 95):.1f} ms; compute p50 "
+         f"{1e3 * _percentile([r['compute'] for r in rows], 50):.1f} ms")
+    received = ", ".join(f"{c} {diag.get(f'frames received {c}', '?')}" for c in cameras)
+    _log(f"  node diagnostics: frames received {received}; {diag.get('windows published', '?')} windows "
+         f"published, drops: "
+         f"{', '.join(f'{k} = {v}' for k, v in drops.items()) or 'none'}")
+    what = draw_windows(rows, out, args.data_root)
+    _log(f"  picture: {out} (tracks drawn on {what})")
+    _log(f"  node exit status {node.returncode}; demo took {time.monotonic() - t_start:.1f} s")
+    if node.returncode != 0:
+        _log(f"demo: error: the matcher node exited with {node.returncode}; log: {node_log}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

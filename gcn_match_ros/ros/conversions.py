@@ -1,0 +1,389 @@
+"""Conversions between the ROS messages and the core types (no node, no executor needed).
+
+- ``gcn_match_msgs/Keypoints`` <-> :class:`gcn_match_ros.windowing.Frame`
+  (:func:`keypoints_to_frame`, :func:`frame_to_keypoints`);
+- a window's frames + a solver's :class:`~gcn_match_ros.problem.Result` ->
+  ``gcn_match_msgs/MatchWindow`` (:func:`result_to_match_window`), checked by
+  :func:`validate_match_window` before anything is published;
+- ``MatchWindow`` -> numpy for consumers (:func:`match_window_to_arrays`, :func:`window_tracks`,
+  :func:`pairwise_matches`, :func:`soft_pairwise_matches`).
+
+Array fields are read with ``np.frombuffer`` (no copy, no per-element Python work) and
+filled with ``array.array(typecode, ndarray.tobytes())``. Binary descriptors (ORB, ...)
+travel packed (``np.packbits``, MSB first) and are unpacked to 0/1 float32 columns in the
+:class:`Frame`, as :func:`gcn_match_ros.datasets.extract_features` gives them to the trainer.
+
+A malformed ``Keypoints`` message raises :class:`~gcn_match_ros.windowing.FrameError`
+whose ``reason`` is a short counter key (``count_mismatch``, ``bad_shape``,
+``descriptor_type``, ``descriptor_dim``, ``too_large``, ``bad_intrinsics``, ``bad_stamp``);
+an inconsistent result raises :class:`MatchWindowError` (a ``ValueError``) with a reason.
+"""
+from __future__ import annotations
+
+import array
+import dataclasses
+import math
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from gcn_match_msgs.msg import Keypoints, MatchWindow
+
+from ..bags import HARD_MAX_KEYPOINTS, frame_from_keypoints_msg, message_array
+from ..problem import Result
+from ..rounding import relabel_tracks
+from ..windowing import Frame, FrameError
+
+__all__ = [
+    "HARD_MAX_KEYPOINTS", "DENSE_MAX_KEYPOINTS", "MatchWindowError",
+    "stamp_to_seconds", "seconds_to_stamp",
+    "keypoints_to_frame", "frame_to_keypoints",
+    "result_to_match_window", "validate_match_window",
+    "WindowArrays", "match_window_to_arrays", "window_tracks", "pairwise_matches",
+    "soft_pairwise_matches",
+]
+
+
+#: A dense N×N score matrix is only attached up to this many keypoints (64 MiB of float32).
+DENSE_MAX_KEYPOINTS = 4096
+
+
+class MatchWindowError(ValueError):
+    """A result or MatchWindow that would be inconsistent; ``reason`` is a short counter key."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+# ---------------------------------------------------------------------------------------
+# Small helpers
+# ---------------------------------------------------------------------------------------
+def _f32(a) -> array.array:
+    return array.array("f", np.ascontiguousarray(a, np.float32).tobytes())
+
+
+def _u32(a) -> array.array:
+    return array.array("I", np.ascontiguousarray(a, np.uint32).tobytes())
+
+
+def _i32(a) -> array.array:
+    return array.array("i", np.ascontiguousarray(a, np.int32).tobytes())
+
+
+def _u8(a) -> array.array:
+    return array.array("B", np.ascontiguousarray(a, np.uint8).tobytes())
+
+
+def stamp_to_seconds(stamp) -> float:
+    """builtin_interfaces/Time -> float seconds."""
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+def seconds_to_stamp(seconds: float) -> Time:
+    """float seconds -> builtin_interfaces/Time (nanoseconds rounded; negative clamps to 0)."""
+    if not math.isfinite(seconds) or seconds <= 0.0:
+        return Time()
+    ns = int(round(seconds * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+# ---------------------------------------------------------------------------------------
+# Keypoints <-> Frame
+# ---------------------------------------------------------------------------------------
+def keypoints_to_frame(msg: Keypoints, camera_id: Optional[str] = None,
+                       max_count: int = HARD_MAX_KEYPOINTS) -> Frame:
+    """A ``Keypoints`` message as a :class:`Frame`: :func:`gcn_match_ros.bags.frame_from_keypoints_msg`
+    (one decoder for live messages and bags; it raises :class:`FrameError` with a counter reason)."""
+    return frame_from_keypoints_msg(msg, camera_id=camera_id, max_count=max_count)
+
+
+def frame_to_keypoints(frame: Frame, descriptor_name: str = "", binary: bool = False,
+                       camera_info=None) -> Keypoints:
+    """A :class:`Frame` as a ``Keypoints`` message.
+
+    Args:
+        descriptor_name: e.g. ``"sift"``, ``"orb"``.
+        binary: pack the (0/1) descriptors as bits (``DESCRIPTOR_BINARY``; entries > 0.5 are 1).
+        camera_info: a ``sensor_msgs/CameraInfo`` to attach as is; default one built from
+            ``frame.K`` (all zero when None) and ``frame.image_size``.
+    """
+    kp = np.asarray(frame.keypoints, np.float32).reshape(-1, 2)
+    n = kp.shape[0]
+    desc = np.asarray(frame.descriptors, np.float32)
+    if desc.ndim != 2:
+        desc = desc.reshape(n, -1) if n else np.zeros((0, 0), np.float32)
+    msg = Keypoints()
+    msg.header.stamp = seconds_to_stamp(frame.stamp)
+    msg.header.frame_id = frame.frame_id or ""
+    msg.camera_id = frame.camera_id
+    if camera_info is not None:
+        msg.camera_info = camera_info
+    else:
+        msg.camera_info.header = msg.header
+        if frame.K is not None:
+            msg.camera_info.k = np.asarray(frame.K, np.float64).reshape(9)
+        if frame.image_size is not None:
+            msg.camera_info.width, msg.camera_info.height = (int(v) for v in frame.image_size)
+    msg.count = n
+    msg.keypoints = _f32(kp)
+    for name in ("scales", "orientations", "scores"):
+        val = getattr(frame, name)
+        if val is not None:
+            setattr(msg, name, _f32(np.asarray(val, np.float32).reshape(n)))
+    msg.descriptor_name = descriptor_name
+    msg.descriptor_dim = int(desc.shape[1])
+    if binary:
+        msg.descriptor_type = Keypoints.DESCRIPTOR_BINARY
+        msg.descriptors_binary = _u8(np.packbits(desc > 0.5, axis=1))
+    else:
+        msg.descriptor_type = Keypoints.DESCRIPTOR_FLOAT
+        msg.descriptors = _f32(desc)
+    return msg
+
+
+# ---------------------------------------------------------------------------------------
+# Result -> MatchWindow
+# ---------------------------------------------------------------------------------------
+def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_threshold: float = 0.0,
+                           dense: bool = False, build_seconds: float = 0.0, solve_seconds: float = 0.0,
+                           total_seconds: float = 0.0, latency_seconds: float = 0.0,
+                           method: Optional[str] = None, frame_id: str = "",
+                           view_stamps: Optional[Sequence[Time]] = None) -> MatchWindow:
+    """The MatchWindow of one solved window (views in ``frames`` order).
+
+    Pairs with score > ``score_threshold`` go into the sparse COO fields. With ``dense`` and
+    N <= :data:`DENSE_MAX_KEYPOINTS`, ``dense_scores`` holds the symmetric N×N matrix of all
+    the result's pair scores (unthresholded) with 1 on the diagonal; above that size it stays
+    empty. Track ids are renumbered 0..T-1 (keypoints alone in their track become -1).
+    ``view_stamps``: the views' exact header stamps (``Frame.stamp`` is float seconds, about
+    0.2 µs coarse at today's epoch); default: converted from ``Frame.stamp``.
+
+    Raises:
+        MatchWindowError: the result does not fit the frames (never a wrong-shaped message).
+    """
+    if not frames:
+        raise MatchWindowError("empty_window", "window has no frames")
+    sizes = np.array([f.count for f in frames], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    n = int(offsets[-1])
+    track = np.asarray(result.track, np.int64)
+    if track.shape != (n,):
+        raise MatchWindowError("bad_result", f"track: expected shape ({n},), got {track.shape}")
+    rows = np.asarray(result.pair_rows, np.int64)
+    cols = np.asarray(result.pair_cols, np.int64)
+    scores = np.asarray(result.pair_scores, np.float32)
+    if not (rows.shape == cols.shape == scores.shape and rows.ndim == 1):
+        raise MatchWindowError("bad_result", f"pair arrays differ in shape: {rows.shape}, {cols.shape}, "
+                                             f"{scores.shape}")
+    if rows.size:
+        if rows.min() < 0 or cols.max() >= n or np.any(rows >= cols):
+            raise MatchWindowError("bad_result", f"pair indices must satisfy 0 <= row < col < {n}")
+        if not np.all(np.isfinite(scores)):
+            raise MatchWindowError("bad_result", "pair scores contain NaN or inf")
+    view = np.repeat(np.arange(len(frames), dtype=np.int64), sizes)
+    if rows.size and np.any(view[rows] == view[cols]):
+        raise MatchWindowError("bad_result", "a pair joins two keypoints of one view")
+    track = relabel_tracks(track)
+    matched = track >= 0
+    keys = track[matched] * len(frames) + view[matched]
+    if keys.size != np.unique(keys).size:
+        raise MatchWindowError("bad_result", "a track holds two keypoints of one view")
+    scores = np.clip(scores, 0.0, 1.0)
+
+    if view_stamps is None or len(view_stamps) != len(frames) or any(s is None for s in view_stamps):
+        view_stamps = [seconds_to_stamp(f.stamp) for f in frames]
+    msg = MatchWindow()
+    newest = max(range(len(frames)), key=lambda v: frames[v].stamp)
+    msg.header.stamp = view_stamps[newest]
+    msg.header.frame_id = frame_id
+    msg.camera_ids = [f.camera_id for f in frames]
+    msg.frame_ids = [f.frame_id or "" for f in frames]
+    msg.view_stamps = list(view_stamps)
+    msg.view_offsets = _u32(offsets)
+    keep = scores > score_threshold
+    msg.pair_rows = _u32(rows[keep])
+    msg.pair_cols = _u32(cols[keep])
+    msg.pair_scores = _f32(scores[keep])
+    msg.score_threshold = float(score_threshold)
+    if dense and n <= DENSE_MAX_KEYPOINTS:
+        d = np.zeros((n, n), np.float32)
+        d[rows, cols] = scores
+        d[cols, rows] = scores
+        np.fill_diagonal(d, 1.0)
+        msg.dense_scores = _f32(d)
+    msg.track = _i32(track)
+    msg.track_count = int(track.max(initial=-1) + 1)
+    msg.method = method if method is not None else result.method
+    msg.build_seconds = float(build_seconds)
+    msg.solve_seconds = float(solve_seconds)
+    msg.total_seconds = float(total_seconds)
+    msg.latency_seconds = float(latency_seconds)
+    return msg
+
+
+def validate_match_window(msg: MatchWindow) -> None:
+    """Check every size and index of a MatchWindow; raises :class:`MatchWindowError`."""
+    v = len(msg.camera_ids)
+    if v < 1:
+        raise MatchWindowError("bad_window", "camera_ids is empty")
+    if len(msg.frame_ids) != v or len(msg.view_stamps) != v:
+        raise MatchWindowError("bad_window", f"frame_ids ({len(msg.frame_ids)}) and view_stamps "
+                                             f"({len(msg.view_stamps)}) must have V={v} entries")
+    offs = message_array(msg.view_offsets, np.uint32).astype(np.int64)
+    if offs.size != v + 1 or offs[0] != 0 or np.any(np.diff(offs) < 0):
+        raise MatchWindowError("bad_window", f"view_offsets must be V+1={v + 1} non-decreasing values "
+                                             f"from 0, got {offs.tolist()[:10]}")
+    n = int(offs[-1])
+    track = message_array(msg.track, np.int32).astype(np.int64)
+    if track.size != n:
+        raise MatchWindowError("bad_window", f"track: {track.size} values, expected N={n}")
+    t = int(msg.track_count)
+    if track.size and (track.min() < -1 or track.max() >= t):
+        raise MatchWindowError("bad_window", f"track ids must lie in [-1, {t})")
+    view = np.repeat(np.arange(v, dtype=np.int64), np.diff(offs))
+    m = track >= 0
+    keys = track[m] * v + view[m]
+    if keys.size != np.unique(keys).size:
+        raise MatchWindowError("bad_window", "a track holds two keypoints of one view")
+    rows = message_array(msg.pair_rows, np.uint32).astype(np.int64)
+    cols = message_array(msg.pair_cols, np.uint32).astype(np.int64)
+    scores = message_array(msg.pair_scores, np.float32)
+    if not rows.size == cols.size == scores.size:
+        raise MatchWindowError("bad_window", f"pair_rows/pair_cols/pair_scores lengths differ: "
+                                             f"{rows.size}, {cols.size}, {scores.size}")
+    if rows.size:
+        if np.any(rows >= cols) or cols.max() >= n:
+            raise MatchWindowError("bad_window", f"pairs must satisfy row < col < N={n}")
+        if np.any(view[rows] == view[cols]):
+            raise MatchWindowError("bad_window", "a pair joins two keypoints of one view")
+        if not (np.all(np.isfinite(scores)) and scores.min() >= 0.0 and scores.max() <= 1.0):
+            raise MatchWindowError("bad_window", "pair scores must lie in [0, 1]")
+    nd = len(msg.dense_scores)
+    if nd not in (0, n * n):
+        raise MatchWindowError("bad_window", f"dense_scores: {nd} values, expected 0 or N*N={n * n}")
+
+
+# ---------------------------------------------------------------------------------------
+# MatchWindow -> numpy (for consumers)
+# ---------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class WindowArrays:
+    """A MatchWindow as numpy arrays.
+
+    Shapes:
+        camera_ids, frame_ids: V strings; view_stamps: (V,) float64 seconds; stamp: newest.
+        view_offsets: (V+1,) int64. view_index, local_index: (N,) int64 — the view of each
+            global keypoint row and its index in that view's Keypoints message.
+        track: (N,) int64 (-1 unmatched), track_count: T.
+        pair_rows, pair_cols: (M,) int64 global rows; pair_scores: (M,) float32.
+        dense_scores: (N, N) float32 or None.
+    """
+
+    camera_ids: List[str]
+    frame_ids: List[str]
+    stamp: float
+    view_stamps: np.ndarray
+    view_offsets: np.ndarray
+    view_index: np.ndarray
+    local_index: np.ndarray
+    track: np.ndarray
+    track_count: int
+    pair_rows: np.ndarray
+    pair_cols: np.ndarray
+    pair_scores: np.ndarray
+    dense_scores: Optional[np.ndarray]
+    method: str
+    latency_seconds: float
+    total_seconds: float
+
+    @property
+    def n_views(self) -> int:
+        return len(self.camera_ids)
+
+    @property
+    def n_keypoints(self) -> int:
+        return int(self.view_offsets[-1])
+
+
+def match_window_to_arrays(msg: MatchWindow, validate: bool = True) -> WindowArrays:
+    """Numpy view of a MatchWindow (validated first unless ``validate=False``)."""
+    if validate:
+        validate_match_window(msg)
+    offs = message_array(msg.view_offsets, np.uint32).astype(np.int64)
+    sizes = np.diff(offs)
+    v = sizes.size
+    view_index = np.repeat(np.arange(v, dtype=np.int64), sizes)
+    n = int(offs[-1])
+    local = np.arange(n, dtype=np.int64) - offs[:-1][view_index] if n else np.zeros(0, np.int64)
+    dense = message_array(msg.dense_scores, np.float32)
+    return WindowArrays(
+        camera_ids=list(msg.camera_ids), frame_ids=list(msg.frame_ids),
+        stamp=stamp_to_seconds(msg.header.stamp),
+        view_stamps=np.array([stamp_to_seconds(s) for s in msg.view_stamps], np.float64),
+        view_offsets=offs, view_index=view_index, local_index=local,
+        track=message_array(msg.track, np.int32).astype(np.int64), track_count=int(msg.track_count),
+        pair_rows=message_array(msg.pair_rows, np.uint32).astype(np.int64),
+        pair_cols=message_array(msg.pair_cols, np.uint32).astype(np.int64),
+        pair_scores=message_array(msg.pair_scores, np.float32).copy(),
+        dense_scores=dense.reshape(n, n).copy() if dense.size and dense.size == n * n else None,
+        method=msg.method, latency_seconds=float(msg.latency_seconds), total_seconds=float(msg.total_seconds))
+
+
+def _as_arrays(window) -> WindowArrays:
+    return window if isinstance(window, WindowArrays) else match_window_to_arrays(window)
+
+
+def window_tracks(window) -> List[List[Tuple[int, int]]]:
+    """Tracks as lists of (view, keypoint index in that view), track id order.
+
+    ``window``: a MatchWindow or :class:`WindowArrays`.
+    """
+    w = _as_arrays(window)
+    idx = np.flatnonzero(w.track >= 0)
+    order = idx[np.argsort(w.track[idx], kind="stable")]
+    t = w.track[order]
+    bounds = np.flatnonzero(np.r_[True, t[1:] != t[:-1], True]) if t.size else np.zeros(1, np.int64)
+    views, local = w.view_index[order].tolist(), w.local_index[order].tolist()
+    return [list(zip(views[s:e], local[s:e])) for s, e in zip(bounds[:-1], bounds[1:])]
+
+
+def pairwise_matches(window) -> Dict[Tuple[int, int], np.ndarray]:
+    """Hard matches implied by the tracks, per view pair (i < j): (K, 2) int64 arrays of
+    (keypoint index in view i, keypoint index in view j)."""
+    w = _as_arrays(window)
+    v = w.n_views
+    out: Dict[Tuple[int, int], np.ndarray] = {}
+    if w.track_count == 0:
+        return out
+    # (T, V) table of the global row of each track in each view, -1 where absent.
+    table = np.full((w.track_count, v), -1, np.int64)
+    m = w.track >= 0
+    table[w.track[m], w.view_index[m]] = np.flatnonzero(m)
+    for i in range(v):
+        for j in range(i + 1, v):
+            both = (table[:, i] >= 0) & (table[:, j] >= 0)
+            if both.any():
+                out[(i, j)] = np.stack([w.local_index[table[both, i]], w.local_index[table[both, j]]], axis=1)
+    return out
+
+
+def soft_pairwise_matches(window, min_score: float = 0.0) -> Dict[Tuple[int, int], Tuple[np.ndarray, np.ndarray]]:
+    """Listed soft matches per view pair (i < j): ((K, 2) int64 local indices, (K,) scores),
+    only scores > ``min_score``."""
+    w = _as_arrays(window)
+    keep = w.pair_scores > min_score
+    r, c, s = w.pair_rows[keep], w.pair_cols[keep], w.pair_scores[keep]
+    vi, vj = w.view_index[r], w.view_index[c]
+    out = {}
+    if r.size == 0:
+        return out
+    key = vi * w.n_views + vj
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    bounds = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True])
+    for s0, e0 in zip(bounds[:-1], bounds[1:]):
+        sel = order[s0:e0]
+        i, j = divmod(int(key[s0]), w.n_views)
+        out[(i, j)] = (np.stack([w.local_index[r[sel]], w.local_index[c[sel]]], axis=1), s[sel])
+    return out
