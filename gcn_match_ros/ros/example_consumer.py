@@ -21,9 +21,9 @@ from __future__ import annotations
 import collections
 import sys
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+
+from .spin import run_node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gcn_match_msgs.msg import MatchWindow
@@ -86,27 +86,7 @@ class MatchConsumer(Node):
 
 def main(args=None) -> int:
     """Console script ``match_consumer``."""
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()
-    node = None
-    try:
-        node = MatchConsumer()
-        executor.add_node(node)
-        if rclpy.ok():
-            executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # A signal shut the context down while the executor was between its checks: rclpy
-        # then raises RCLError ("context is not valid") instead of ExternalShutdownException.
-    finally:
-        if node is not None:
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown()
-    return 0
+    return run_node(MatchConsumer, "match_consumer", args)
 
 
 if __name__ == "__main__":

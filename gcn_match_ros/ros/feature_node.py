@@ -27,8 +27,9 @@ import cv2
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+
+from .spin import run_node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -187,33 +188,7 @@ class FeatureNode(Node):
 
 def main(args=None) -> int:
     """Console script ``feature_node``; returns the exit status (1: invalid parameters)."""
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()
-    node = None
-    try:
-        try:
-            node = FeatureNode()
-        except Exception as exc:  # invalid parameters
-            if not rclpy.ok():
-                return 0
-            rclpy.logging.get_logger("feature_node").fatal(f"cannot start: {type(exc).__name__}: {exc}")
-            return 1
-        executor.add_node(node)
-        if rclpy.ok():
-            executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # A signal shut the context down while the executor was between its checks: rclpy
-        # then raises RCLError ("context is not valid") instead of ExternalShutdownException.
-    finally:
-        if node is not None:
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown()
-    return 0
+    return run_node(FeatureNode, "feature_node", args)
 
 
 if __name__ == "__main__":

@@ -41,8 +41,9 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType,
                                 SetParametersResult)
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+
+from .spin import run_node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
 from gcn_match_msgs.msg import Keypoints, MatchWindow
@@ -597,35 +598,11 @@ def main(args=None) -> int:
     SIGINT / SIGTERM (rclpy's handlers) end the spin with ExternalShutdownException; the
     worker finishes the window it is computing and is joined, then the process exits 0.
     """
-    rclpy.init(args=args)
-    executor = SingleThreadedExecutor()  # before the node: a signal during start-up is then harmless
-    node = None
-    try:
-        try:
-            node = MatcherNode()
-        except StartupError as exc:
-            if not rclpy.ok():  # interrupted while starting (e.g. loading the model)
-                return 0
-            rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
-            return 1
-        executor.add_node(node)
-        if rclpy.ok():
-            executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if rclpy.ok():
-            raise
-        # A signal shut the context down while the executor was between its checks: rclpy
-        # then raises RCLError ("context is not valid") instead of ExternalShutdownException.
-    finally:
-        if node is not None:
-            if not node.stop():
-                rclpy.logging.get_logger(NODE_NAME).warning("inference worker still busy at shutdown")
-            node.destroy_node()
-        executor.shutdown(timeout_sec=1.0)
-        rclpy.try_shutdown()
-    return 0
+    def stop_worker(node: "MatcherNode") -> None:
+        if not node.stop():
+            rclpy.logging.get_logger(NODE_NAME).warning("inference worker still busy at shutdown")
+
+    return run_node(MatcherNode, NODE_NAME, args, start_errors=(StartupError,), on_shutdown=stop_worker)
 
 
 if __name__ == "__main__":
