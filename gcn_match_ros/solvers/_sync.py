@@ -26,6 +26,7 @@ from .base import SoftMatches
 
 __all__ = ["check_inputs", "check_node_limit", "view_index_of", "component_eigh", "select_eigvecs",
            "zhou_rounding", "sparse_soft_matches", "resolve_universe_size", "parse_universe",
+           "check_spectral_settings",
            "repair_tracks"]
 
 
@@ -90,6 +91,15 @@ def check_node_limit(n: int, max_nodes: int, *, method: str, what: str = "keypoi
         raise ValueError(f"{method}: {n} {what} exceed this dense method's node limit max_nodes={max_nodes} "
                          f"(it holds {n}x{n} matrices, {mib:.0f} MiB each); raise max_nodes or use a "
                          f"sparse method (e.g. nn, clear on a nearest-neighbour graph)")
+
+
+def check_spectral_settings(config, soft_choices: tuple, *, method: str) -> None:
+    """The settings spectral, MatchEIG and CLEAR share: ``soft`` output kind, ``max_nodes``, ``universe``."""
+    if config.soft not in soft_choices:
+        raise ValueError(f"soft must be one of {soft_choices}, got {config.soft!r}")
+    if config.max_nodes < 1:
+        raise ValueError(f"max_nodes must be >= 1, got {config.max_nodes}")
+    parse_universe(config.universe, method=method)
 
 
 def parse_universe(value, *, method: str) -> Optional[int]:

@@ -32,7 +32,7 @@ import scipy.sparse as sp
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from ..rounding import relabel_tracks, tracks_to_pairs
-from ._sync import check_inputs, component_eigh, parse_universe, sparse_soft_matches
+from ._sync import check_inputs, check_spectral_settings, component_eigh, parse_universe, sparse_soft_matches
 from .base import SoftMatches, Solver, SolverConfig, register
 
 __all__ = ["clear", "clear_embedding", "CLEARConfig", "CLEARSolver"]
@@ -170,11 +170,7 @@ class CLEARConfig(SolverConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.soft not in _SOFT:
-            raise ValueError(f"soft must be one of {_SOFT}, got {self.soft!r}")
-        if self.max_nodes < 1:
-            raise ValueError(f"max_nodes must be >= 1, got {self.max_nodes}")
-        parse_universe(self.universe, method="clear")
+        check_spectral_settings(self, _SOFT, method="clear")
 
 
 @register

@@ -28,8 +28,8 @@ import scipy.sparse as sp
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from ..rounding import greedy_tracks
-from ._sync import (check_inputs, component_eigh, parse_universe, repair_tracks, resolve_universe_size,
-                    select_eigvecs, sparse_soft_matches, view_index_of)
+from ._sync import (check_inputs, check_spectral_settings, component_eigh, repair_tracks,
+                    resolve_universe_size, select_eigvecs, sparse_soft_matches, view_index_of)
 from .base import SoftMatches, Solver, SolverConfig, register
 
 __all__ = ["matcheig", "matcheig_scores", "matcheig_pairs", "MatchEIGConfig", "MatchEIGSolver"]
@@ -172,11 +172,7 @@ class MatchEIGConfig(SolverConfig):
         super().__post_init__()
         if self.rounding not in _ROUNDING:
             raise ValueError(f"rounding must be one of {_ROUNDING}, got {self.rounding!r}")
-        if self.soft not in _SOFT:
-            raise ValueError(f"soft must be one of {_SOFT}, got {self.soft!r}")
-        if self.max_nodes < 1:
-            raise ValueError(f"max_nodes must be >= 1, got {self.max_nodes}")
-        parse_universe(self.universe, method="matcheig")
+        check_spectral_settings(self, _SOFT, method="matcheig")
 
 
 @register

@@ -22,8 +22,8 @@ import scipy.sparse as sp
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
-from ._sync import (_normalise_rows, check_inputs, component_eigh, parse_universe, resolve_universe_size,
-                    select_eigvecs, sparse_soft_matches, zhou_rounding)
+from ._sync import (_normalise_rows, check_inputs, check_spectral_settings, component_eigh,
+                    resolve_universe_size, select_eigvecs, sparse_soft_matches, zhou_rounding)
 from .base import Solver, SolverConfig, register
 
 __all__ = ["spectral", "spectral_embedding", "SpectralConfig", "SpectralSolver"]
@@ -89,11 +89,7 @@ class SpectralConfig(SolverConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.soft not in _SOFT:
-            raise ValueError(f"soft must be one of {_SOFT}, got {self.soft!r}")
-        if self.max_nodes < 1:
-            raise ValueError(f"max_nodes must be >= 1, got {self.max_nodes}")
-        parse_universe(self.universe, method="spectral")
+        check_spectral_settings(self, _SOFT, method="spectral")
 
 
 @register
