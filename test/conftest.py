@@ -29,6 +29,17 @@ def permuted_views_problem(n_views: int = 3, n_points: int = 12, dim: int = 16, 
                    gt_track=np.concatenate(gt), name="permuted")
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Run a module's torch ops on one intra-op thread, restoring the count afterwards."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture
 def small_problem() -> Problem:
     return permuted_views_problem()

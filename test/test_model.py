@@ -16,12 +16,8 @@ from gcn_match_ros.problem import Problem
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _one_thread():
+def _one_thread(one_torch_thread):
     """Tiny graphs: one intra-op thread is fastest and immune to a busy shared CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 SMALL = dict(widths=(16, 16, 24, 24), out_dim=12, groups=4, skip_layers=(2, 4))
