@@ -24,6 +24,7 @@ from typing import Dict, Optional
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 import torch
 
 from .graph import normalize_descriptors
@@ -33,6 +34,8 @@ __all__ = ["EdgeConfig", "EdgeSet", "candidate_edges", "EDGE_FEATURES"]
 
 EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
                  "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
+
+RANK_CAP = 10  # descriptor ranks are features up to this value (min(rank, RANK_CAP) / RANK_CAP)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,19 +89,19 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
             na, nb = a1 - a0, b1 - b0
             if na < 2 or nb < 2:
                 continue
-            sim = (desc[a0:a1] @ desc[b0:b1].T).numpy()
+            sim_t = desc[a0:a1] @ desc[b0:b1].T
+            sim = sim_t.numpy()
             k = min(config.k, na, nb)
-            # top candidates from each side
-            ir = np.argpartition(-sim, k - 1, axis=1)[:, :k]
-            ic = np.argpartition(-sim, k - 1, axis=0)[:k, :]
-            top2r = -np.partition(-sim, 1, axis=1)[:, :2]
-            top2c = -np.partition(-sim, 1, axis=0)[:2, :]
-            best_r, sec_r = top2r.max(1), top2r.min(1)
-            best_c, sec_c = top2c.max(0), top2c.min(0)
-            nn_r = sim.argmax(1)
-            nn_c = sim.argmax(0)
-            ea = np.concatenate([np.repeat(np.arange(na), k), ic.T.ravel()])
-            eb = np.concatenate([ir.ravel(), np.repeat(np.arange(nb), k)])
+            # The RANK_CAP + 1 best similarities of every row and column, best first: the
+            # candidates, the ratio test and the (capped) ranks all read from them.
+            top_r, ir = torch.topk(sim_t, min(RANK_CAP + 1, nb), dim=1)
+            top_c, ic = torch.topk(sim_t.T, min(RANK_CAP + 1, na), dim=1)
+            top_r, ir, top_c, ic = top_r.numpy(), ir.numpy(), top_c.numpy(), ic.numpy()
+            best_r, sec_r = top_r[:, 0], top_r[:, 1]
+            best_c, sec_c = top_c[:, 0], top_c[:, 1]
+            nn_r, nn_c = ir[:, 0], ic[:, 0]
+            ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
+            eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
             mutual_ab = (nn_c[nn_r] == np.arange(na))
             d = lambda c: np.sqrt(np.maximum(2 - 2 * c, 0))
             ratio_r = d(best_r) / np.maximum(d(sec_r), 1e-9)
@@ -121,8 +124,8 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
             np.logical_or.at(g2, np.searchsorted(uniq, key), guided)
             ea, eb = uniq // nb, uniq % nb
             s = sim[ea, eb]
-            rank_a = (sim[ea] > s[:, None]).sum(1)
-            rank_b = (sim[:, eb].T > s[:, None]).sum(1)
+            rank_a = (top_r[ea] > s[:, None]).sum(1)  # exact below RANK_CAP, else >= RANK_CAP
+            rank_b = (top_c[eb] > s[:, None]).sum(1)
             rat_a = d(s) / np.maximum(np.where(rank_a == 0, d(sec_r[ea]), d(best_r[ea])), 1e-9)
             rat_b = d(s) / np.maximum(np.where(rank_b == 0, d(sec_c[eb]), d(best_c[eb])), 1e-9)
             mutual = (rank_a == 0) & (rank_b == 0)
@@ -134,7 +137,7 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
                 rh = rf = np.full(ea.shape[0], np.inf)
                 has = 0.0
             parts.append((ea + a0, eb + b0, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5),
-                          rank_a, rank_b, mutual, conf, rh, rf, has, g2))
+                          np.minimum(rank_a, RANK_CAP), np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, has, g2))
     if not parts:
         z = np.zeros(0, np.int64)
         return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool))
@@ -151,7 +154,7 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
     tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool))
     tri_conf = _triangle_support(n, V, view, rows, colsi, conf)
     rmin = np.minimum(rh, rf)
-    feats = np.stack([s, ra, rb, np.minimum(rka, 10) / 10, np.minimum(rkb, 10) / 10, mutual, conf,
+    feats = np.stack([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf,
                       tri_all, tri_conf, _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided], axis=1)
     return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
 
@@ -162,15 +165,12 @@ def _guided(sim, xa, xb, model, px):
     from .geometry_verify import transfer, epipolar_distance_matrix
     out_a, out_b = [], []
     if model.H is not None:
-        pa = transfer(model.H, xa)
-        dab = np.linalg.norm(pa[:, None, :] - xb[None, :, :], axis=2)
-        j = dab.argmin(1)
-        ok = dab[np.arange(len(xa)), j] < px
+        # nearest keypoint to each transfer, within px (KD-trees: never an na x nb distance matrix)
+        dist, j = cKDTree(xb).query(transfer(model.H, xa), distance_upper_bound=px)
+        ok = dist < px
         out_a.append(np.flatnonzero(ok)); out_b.append(j[ok])
-        pb = transfer(np.linalg.inv(model.H), xb)
-        dba = np.linalg.norm(pb[:, None, :] - xa[None, :, :], axis=2)
-        i = dba.argmin(1)
-        ok = dba[np.arange(len(xb)), i] < px
+        dist, i = cKDTree(xa).query(transfer(np.linalg.inv(model.H), xb), distance_upper_bound=px)
+        ok = dist < px
         out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
     if model.F is not None:
         D = epipolar_distance_matrix(model.F, xa, xb)
@@ -193,9 +193,9 @@ def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
     r, c = rows[mask], cols[mask]
     A = sp.csr_matrix((np.ones(2 * r.shape[0]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
     A.data[:] = 1.0
-    count = np.zeros(rows.shape[0])
-    for k in range(V):
-        sel = sp.diags((view == k).astype(np.float64))
-        P = (A @ sel @ A).tocsr()
-        count += np.asarray(P[rows, cols]).ravel() > 0
+    # common neighbours w of a and b (row-wise product), then the distinct views among them;
+    # edges join different views, so a common neighbour is always in a third view
+    common = A[rows].multiply(A[cols]).tocoo()
+    key = np.unique(common.row.astype(np.int64) * V + view[common.col])
+    count = np.bincount(key // V, minlength=rows.shape[0]).astype(np.float64)
     return count / (V - 2)

@@ -1,0 +1,77 @@
+"""Candidate edges of the learned edge scorer: features checked against brute-force definitions."""
+import numpy as np
+import pytest
+
+from gcn_match_ros.edge_features import EDGE_FEATURES, RANK_CAP, EdgeConfig, _triangle_support, candidate_edges
+from gcn_match_ros.graph import normalize_descriptors
+
+from conftest import permuted_views_problem
+
+
+def _brute_triangles(n_views, view, rows, cols, mask):
+    nbrs = {}
+    for r, c in zip(rows[mask], cols[mask]):
+        nbrs.setdefault(r, set()).add(c)
+        nbrs.setdefault(c, set()).add(r)
+    out = []
+    for r, c in zip(rows, cols):
+        common = nbrs.get(r, set()) & nbrs.get(c, set())
+        out.append(len({view[w] for w in common}) / (n_views - 2))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_triangle_support_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n_views, per_view = 5, 6
+    view = np.repeat(np.arange(n_views), per_view)
+    n = view.shape[0]
+    a, b = rng.integers(0, n, size=(2, 150))
+    keep = view[a] != view[b]
+    rows, cols = np.minimum(a, b)[keep], np.maximum(a, b)[keep]
+    mask = rng.random(rows.shape[0]) < 0.6
+    got = _triangle_support(n, n_views, view, rows, cols, mask)
+    np.testing.assert_allclose(got, _brute_triangles(n_views, view, rows, cols, mask))
+
+
+def test_two_views_have_no_triangle_support():
+    view = np.array([0, 0, 1, 1])
+    assert np.all(_triangle_support(4, 2, view, np.array([0, 1]), np.array([2, 3]), np.ones(2, bool)) == 0)
+
+
+def test_candidate_features_match_their_definitions():
+    problem = permuted_views_problem(n_views=4, n_points=30, dim=32, noise=0.3, seed=3)
+    es = candidate_edges(problem, EdgeConfig(k=3, geometry=False, guided=False))
+    assert es.features.shape == (es.rows.shape[0], len(EDGE_FEATURES))
+    assert np.all(es.rows < es.cols)
+    assert np.all(problem.view_index[es.rows] != problem.view_index[es.cols])
+    desc = normalize_descriptors(problem.descriptors, "rootsift")
+    f = {name: es.features[:, i] for i, name in enumerate(EDGE_FEATURES)}
+    offs = problem.view_offsets
+    for e in range(es.rows.shape[0]):
+        a, b = es.rows[e], es.cols[e]
+        va, vb = problem.view_index[a], problem.view_index[b]
+        row = desc[a] @ desc[offs[vb]:offs[vb + 1]].T   # a against every keypoint of b's view
+        col = desc[b] @ desc[offs[va]:offs[va + 1]].T
+        s = desc[a] @ desc[b]
+        assert f["cosine"][e] == pytest.approx(s, abs=1e-5)
+        rank_a, rank_b = int((row > s + 1e-6).sum()), int((col > s + 1e-6).sum())
+        assert f["rank_a"][e] == pytest.approx(min(rank_a, RANK_CAP) / RANK_CAP)
+        assert f["rank_b"][e] == pytest.approx(min(rank_b, RANK_CAP) / RANK_CAP)
+        assert f["mutual"][e] == float(rank_a == 0 and rank_b == 0)
+        # every candidate is among the top k of one of its ends
+        assert rank_a < 3 or rank_b < 3
+    # with moderate noise the true pairs are candidates
+    true_pairs = set()
+    for a in range(problem.n_keypoints):
+        for b in range(a + 1, problem.n_keypoints):
+            if problem.view_index[a] != problem.view_index[b] and problem.gt_track[a] == problem.gt_track[b]:
+                true_pairs.add((a, b))
+    found = set(zip(es.rows.tolist(), es.cols.tolist()))
+    assert len(true_pairs & found) >= 0.9 * len(true_pairs)
+
+
+def test_no_candidates_for_single_keypoint_views():
+    problem = permuted_views_problem(n_views=3, n_points=1, dim=8)
+    es = candidate_edges(problem)
+    assert es.rows.shape == (0,) and es.features.shape == (0, len(EDGE_FEATURES))
