@@ -166,6 +166,10 @@ _PROBLEM_REQUIRED = ("view_offsets", "keypoints", "descriptors")
 _PROBLEM_OPTIONAL = ("scales", "orientations", "K", "R", "t", "image_size", "gt_track")
 
 
+_UMASK = os.umask(0)  # read once at import (os.umask can only be read by setting it)
+os.umask(_UMASK)
+
+
 def atomic_write(path, write_fn) -> None:
     """Write a file via ``write_fn(tmp_path)`` then rename: readers never see a partial file."""
     path = Path(path)
@@ -174,6 +178,8 @@ def atomic_write(path, write_fn) -> None:
     os.close(fd)
     try:
         write_fn(tmp)
+        # mkstemp makes the file private (0600); give it the mode a plain open() would
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

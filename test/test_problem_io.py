@@ -81,3 +81,16 @@ def test_subset_views():
     q = p.subset_views([2, 0])
     assert q.n_views == 2 and q.n_keypoints == 10
     np.testing.assert_array_equal(q.descriptors[:5], p.descriptors[10:15])
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path):
+    import os
+    from gcn_match_ros.problem import atomic_write
+
+    target = tmp_path / "out.bin"
+    atomic_write(target, lambda p: open(p, "wb").write(b"x"))
+    plain = tmp_path / "plain.bin"
+    plain.write_bytes(b"x")
+    assert target.read_bytes() == b"x"
+    assert os.stat(target).st_mode & 0o777 == os.stat(plain).st_mode & 0o777
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
