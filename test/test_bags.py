@@ -275,8 +275,10 @@ def test_play_record_round_trip_through_dds(tmp_path, ros_env):
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         play = subprocess.run(_tool("bag_play", src, "--rate", 8, "--topics", *topics, "--quiet",
-                                    "--wait-for-subscribers", 1, "--wait-timeout", 30),
-                              env=ros_env, capture_output=True, text=True, timeout=45)
+                                    "--wait-for-subscribers", 1, "--wait-timeout", 30,
+                                    # the recorder has everything before it is stopped (loaded CI)
+                                    "--wait-for-all-acked", 10),
+                              env=ros_env, capture_output=True, text=True, timeout=55)
         assert play.returncode == 0, play.stdout + play.stderr
         assert "done: 72 messages" in play.stderr + play.stdout
         rec.send_signal(signal.SIGTERM)  # finalises the bag
