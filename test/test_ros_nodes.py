@@ -717,3 +717,29 @@ def test_feature_node_turns_images_into_keypoints():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.skipif(not _gcn_model_available(), reason="shipped model missing")
+def test_matcher_gcn_takes_orb_and_drops_unsupported_dimensions(harness_factory):
+    """With the shipped models the gcn node takes the first frame's descriptor type (128-D
+    float or 256-bit binary); a dimension no model takes is a counted drop, not a crash."""
+    h = harness_factory(solver="gcn")
+    clock = iter(time.time() + 0.3 * k for k in range(100))
+    rng = np.random.default_rng(3)
+    n = 50
+    odd = Frame(camera_id="cam0", stamp=next(clock), keypoints=rng.uniform(0, 600, (n, 2)),
+                descriptors=np.abs(rng.normal(size=(n, 64))).astype(np.float32))
+    h.publish(odd)
+    h.wait_diag(lambda v: v.get("frames dropped descriptor_dim") == "1")
+    bits = rng.integers(0, 2, size=(n, 256))
+    xy = rng.uniform(20, 620, size=(n, 2))
+    t = next(clock)
+    for cam in CAMS:
+        perm = rng.permutation(n)
+        flip = rng.random((n, 256)) < 0.03
+        f = Frame(camera_id=cam, stamp=t, keypoints=(xy[perm] + rng.normal(scale=1.0, size=(n, 2))).astype(np.float32),
+                  descriptors=(bits[perm] ^ flip).astype(np.float32))
+        h.publish(f, descriptor_name="orb", binary=True)
+    (m,) = h.wait_windows(1)
+    validate_match_window(m)
+    assert h.matcher._assembler.config.descriptor_dim == 256

@@ -34,7 +34,7 @@ import math
 import sys
 import threading
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import rclpy
@@ -56,7 +56,7 @@ from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, window
 from .conversions import (MatchWindowError, keypoints_to_frame, result_to_match_window,
                           validate_match_window)
 
-__all__ = ["MatcherNode", "StartupError", "create_solver", "solver_descriptor_dim", "main", "INPUT_QOS"]
+__all__ = ["MatcherNode", "StartupError", "create_solver", "solver_descriptor_dims", "main", "INPUT_QOS"]
 
 NODE_NAME = "matcher_node"
 #: Accepted values of the ``input_qos`` parameter.
@@ -127,22 +127,15 @@ def create_solver(spec: str, checkpoint: str = "", device: str = "cpu"):
                            + f": {type(exc).__name__}: {exc}") from None
 
 
-def solver_descriptor_dim(solver) -> int:
-    """Descriptor dimension a solver requires (a learned model's input), 0 when any works."""
-    dim = getattr(solver, "descriptor_dim", None)
-    if dim:
-        return int(dim)
-    meta = getattr(solver, "meta", None)
-    if isinstance(meta, dict) and "model_config" in meta and "feature_config" in meta:
-        try:
-            from ..features import feature_dim
-            extra = feature_dim(0, meta["feature_config"])
-            per_desc = feature_dim(1, meta["feature_config"]) - extra
-            if per_desc:
-                return int(meta["model_config"].in_dim - extra)
-        except Exception:  # an unfamiliar checkpoint layout: accept any dimension
-            return 0
-    return 0
+def solver_descriptor_dims(solver) -> Tuple[int, ...]:
+    """Descriptor dimensions a solver takes (a learned model's input; the ``gcn`` solver with
+    the shipped models: one per model); () when any works."""
+    dims = getattr(solver, "descriptor_dims", None)
+    return tuple(int(d) for d in dims) if dims else ()
+
+
+def _dims_text(dims: Tuple[int, ...]) -> str:
+    return " or ".join(str(d) for d in dims)
 
 
 def _warmup_problem(dim: int, views: int = 3, points: int = 40, seed: int = 0) -> Problem:
@@ -249,12 +242,12 @@ class MatcherNode(Node):
         t0 = time.perf_counter()
         self._solver = create_solver(spec, gp("checkpoint").value, device)
         self._method = self._solver.describe()
-        self._solver_dim = solver_dim = solver_descriptor_dim(self._solver)
-        if solver_dim and config.descriptor_dim not in (0, solver_dim):
+        self._solver_dims = solver_dims = solver_descriptor_dims(self._solver)
+        if solver_dims and config.descriptor_dim not in (0,) + solver_dims:
             raise StartupError(f"parameter descriptor_dim={config.descriptor_dim} but solver {self._method} "
-                               f"takes {solver_dim}-D descriptors")
-        if solver_dim:
-            config = dataclasses.replace(config, descriptor_dim=solver_dim)
+                               f"takes {_dims_text(solver_dims)}-D descriptors")
+        if len(solver_dims) == 1:
+            config = dataclasses.replace(config, descriptor_dim=solver_dims[0])
             self._auto_dim = False
         warm = self._warm_up(config.descriptor_dim)
         self.get_logger().info(f"solver {self._method} ready in {time.perf_counter() - t0:.2f} s ({warm})")
@@ -339,13 +332,13 @@ class MatcherNode(Node):
     def _warm_up(self, dim: int) -> str:
         """One solve on a small problem: first-call costs leave the first real window, and a
         solver that cannot run at all is found at start-up."""
-        dim = dim or int(getattr(self._solver, "descriptor_dim", 0) or 128)
         t = time.perf_counter()
-        try:
-            self._solver.solve(_warmup_problem(dim))
-        except Exception as exc:
-            raise StartupError(f"solver {self._method} fails on a {dim}-D warm-up window: "
-                               f"{type(exc).__name__}: {exc}") from None
+        for d in ((dim,) if dim else self._solver_dims or (128,)):  # every model loads at start-up
+            try:
+                self._solver.solve(_warmup_problem(d))
+            except Exception as exc:
+                raise StartupError(f"solver {self._method} fails on a {d}-D warm-up window: "
+                                   f"{type(exc).__name__}: {exc}") from None
         return f"warm-up {1e3 * (time.perf_counter() - t):.0f} ms"
 
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -360,10 +353,11 @@ class MatcherNode(Node):
             values.update(window)
             if "descriptor_dim" in window:
                 dim = int(window["descriptor_dim"])
-                if self._solver_dim and dim not in (0, self._solver_dim):
+                if self._solver_dims and dim not in (0,) + self._solver_dims:
                     return SetParametersResult(successful=False, reason=(
-                        f"solver {self._method} takes {self._solver_dim}-D descriptors"))
-                values["descriptor_dim"] = dim or self._solver_dim  # 0: the solver's, else the next frame's
+                        f"solver {self._method} takes {_dims_text(self._solver_dims)}-D descriptors"))
+                # 0: the solver's single dimension, else the next frame's
+                values["descriptor_dim"] = dim or (self._solver_dims[0] if len(self._solver_dims) == 1 else 0)
                 auto = values["descriptor_dim"] == 0
             try:
                 new_config = self._window_config_from(values)
@@ -400,7 +394,14 @@ class MatcherNode(Node):
         with self._lock:
             cfg = self._assembler.config
             if self._auto_dim and cfg.descriptor_dim == 0 and frame.count > 0:
-                cfg = dataclasses.replace(cfg, descriptor_dim=int(frame.descriptors.shape[1]))
+                dim = int(frame.descriptors.shape[1])
+                if self._solver_dims and dim not in self._solver_dims:
+                    self._stats.conversion_drops["descriptor_dim"] += 1
+                    self.get_logger().warning(
+                        f"dropped a frame of {camera}: {dim}-D descriptors, solver {self._method} takes "
+                        f"{_dims_text(self._solver_dims)}-D (descriptor_dim)", throttle_duration_sec=_THROTTLE_S)
+                    return
+                cfg = dataclasses.replace(cfg, descriptor_dim=dim)
                 self._assembler.config = cfg
                 self.get_logger().info(f"descriptor dimension {cfg.descriptor_dim} (from the first frame, "
                                        f"{camera}); frames of another dimension are dropped")

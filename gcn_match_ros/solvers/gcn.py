@@ -11,24 +11,31 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
+from typing import Optional, Tuple
 
 import torch
 
+from ..features import feature_dim
 from ..graph import CorrespondenceGraph, GraphConfig
-from ..problem import Problem
+from ..problem import Problem, Result
 from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
 
-__all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT"]
+__all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT", "SHIPPED_MODELS"]
 
-#: The model shipped inside the package (trained by the command in models/README.md).
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "models" / "default.pt"
+_MODELS = Path(__file__).resolve().parents[1] / "models"
+#: The models shipped inside the package (trained by the commands in models/README.md),
+#: by descriptor dimension: 128 = SIFT, 256 = ORB (32 bytes unpacked to bits).
+SHIPPED_MODELS = {128: _MODELS / "default.pt", 256: _MODELS / "orb.pt"}
+#: The SIFT model, used when no problem tells the descriptor dimension.
+DEFAULT_CHECKPOINT = SHIPPED_MODELS[128]
 
 
 @dataclasses.dataclass
 class GCNSolverConfig(SolverConfig):
     """Attributes:
         graph: "checkpoint" (the graph the model was trained on) or a preset name.
-        checkpoint: path of a checkpoint; "" = the shipped default model.
+        checkpoint: path of a checkpoint; "" = the shipped model for the problem's
+            descriptor dimension (:data:`SHIPPED_MODELS`).
         top_k: candidates kept per keypoint and view in the soft output.
         floor: scores at or below it are not listed.
         device: torch device for the forward pass ("cpu", "cuda").
@@ -67,15 +74,38 @@ class GCNSolver(Solver):
 
     def __init__(self, config=None, **settings) -> None:
         super().__init__(config, **settings)
-        path = os.fspath(self.config.checkpoint or DEFAULT_CHECKPOINT)
+        self._threshold_setting = self.config.threshold
+        self._use(os.fspath(self.config.checkpoint or DEFAULT_CHECKPOINT))
+
+    def _use(self, path: str) -> None:
+        """Load (cached) the checkpoint at ``path`` and take its rounding threshold unless set."""
         # mtime in the cache key: a retrained file at the same path is reloaded.
         mtime = os.path.getmtime(path) if os.path.isfile(path) else 0.0
         self.model, self.meta = _load(path, self.config.device, mtime)
         self.checkpoint_path = path
-        if self.config.threshold < 0:
+        threshold = self._threshold_setting
+        if threshold < 0:
             # the rounding threshold selected with the model (validation split), if it has one
             solver_cfg = self.meta["config"].get("solver") or {}
-            self.config = dataclasses.replace(self.config, threshold=float(solver_cfg.get("threshold", 0.5)))
+            threshold = float(solver_cfg.get("threshold", 0.5))
+        self.config = dataclasses.replace(self.config, threshold=threshold)
+
+    @property
+    def descriptor_dims(self) -> Tuple[int, ...]:
+        """Descriptor dimensions this solver takes: the checkpoint's, or every shipped model's."""
+        if self.config.checkpoint:
+            fc = self.meta["feature_config"]
+            return (int(self.meta["model_config"].in_dim - feature_dim(0, fc)),)
+        return tuple(d for d, p in sorted(SHIPPED_MODELS.items()) if p.is_file())
+
+    def _select_model(self, problem: Problem) -> None:
+        """With no checkpoint setting, switch to the shipped model for this descriptor dimension
+        (a dimension no shipped model takes keeps the current one, whose shape check names it)."""
+        if self.config.checkpoint:
+            return
+        path = SHIPPED_MODELS.get(int(problem.descriptors.shape[1]))
+        if path is not None and os.fspath(path) != self.checkpoint_path and path.is_file():
+            self._use(os.fspath(path))
 
     @property
     def graph_config(self) -> GraphConfig:
@@ -85,8 +115,11 @@ class GCNSolver(Solver):
 
     def describe(self) -> str:
         base = super().describe()
-        return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + \
-            f"model={Path(self.checkpoint_path).name}"
+        return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
+
+    def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None) -> Result:
+        self._select_model(problem)
+        return super().solve(problem, graph)
 
     def match(self, problem: Problem, graph: CorrespondenceGraph):
         from ..model import embed_problem
