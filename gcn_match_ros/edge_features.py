@@ -74,7 +74,7 @@ def _squash(d: np.ndarray) -> np.ndarray:
 
 def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> EdgeSet:
     """Candidate edges of ``problem`` with their features (see the module docstring)."""
-    from .geometry_verify import fit_pair, residuals
+    from .geometry_verify import MIN_SEEDS, fit_pair, residuals
 
     desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
     offs = problem.view_offsets
@@ -110,7 +110,13 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
             conf_b = nn_r[conf_a]
             model = None
             if config.geometry:
-                model = fit_pair(kp[a0:a1][conf_a], kp[b0:b1][conf_b])
+                seed_a, seed_b = conf_a, conf_b
+                if seed_a.shape[0] < MIN_SEEDS:
+                    # too few ratio-test survivors (repetitive or noisy descriptors): fit on all
+                    # mutual nearest neighbours instead; the robust estimator copes with the outliers
+                    seed_a = np.flatnonzero(mutual_ab)
+                    seed_b = nn_r[seed_a]
+                model = fit_pair(kp[a0:a1][seed_a], kp[b0:b1][seed_b])
                 model = model.selected() if model is not None else None
             guided = np.zeros(ea.shape[0], bool)
             if config.guided and model is not None:

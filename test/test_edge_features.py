@@ -75,3 +75,16 @@ def test_no_candidates_for_single_keypoint_views():
     problem = permuted_views_problem(n_views=3, n_points=1, dim=8)
     es = candidate_edges(problem)
     assert es.rows.shape == (0,) and es.features.shape == (0, len(EDGE_FEATURES))
+
+
+def test_geometry_falls_back_to_mutual_seeds_when_the_ratio_test_leaves_too_few():
+    """Generated SIFT-like descriptors fail Lowe's ratio test almost everywhere; the two-view
+    models are then fitted on mutual nearest neighbours, so every view pair still gets one."""
+    from gcn_match_ros import synthetic
+
+    problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([5, 0]))
+    es = candidate_edges(problem)
+    f = {name: es.features[:, i] for i, name in enumerate(EDGE_FEATURES)}
+    assert f["confident"].sum() < 3 * 12   # fewer than MIN_SEEDS survivors per pair on average
+    assert f["has_model"].min() == 1.0     # yet every pair has a model
+    assert f["guided"].sum() > 0
