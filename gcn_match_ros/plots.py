@@ -38,7 +38,7 @@ __all__ = ["load_history", "plot_history", "plot_pr", "plot_similarity", "simila
            "cross_view_similarities", "plot_similarity_histograms", "main"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
-_TERMS = ("loss", "recon", "epipolar")
+_TERMS = ("loss", "recon", "epipolar", "edge")
 
 
 def _plt():
@@ -110,7 +110,7 @@ def plot_history(runs: Union[RunLike, Sequence[RunLike]], path, labels: Optional
     Args:
         runs: run folders, ``history.json`` files or history dicts.
         labels: legend names (default: the folder names, else ``run 1``, ...).
-        terms: loss keys to draw when present (``loss``, ``recon``, ``epipolar``).
+        terms: loss keys to draw when present (``loss``, ``recon``, ``epipolar``, ``edge``).
         log_y: logarithmic loss axis; None = when a panel spans more than a factor 20.
 
     Returns:
@@ -133,7 +133,8 @@ def plot_history(runs: Union[RunLike, Sequence[RunLike]], path, labels: Optional
 
     fig, axes = plt.subplots(1, len(present), figsize=(4.6 * len(present), 3.8), squeeze=False)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    names = {"loss": "total loss", "recon": "reconstruction loss", "epipolar": "epipolar loss"}
+    names = {"loss": "total loss", "recon": "reconstruction loss", "epipolar": "epipolar loss",
+             "edge": "edge-head loss"}
     for ax, term in zip(axes[0], present):
         lo, hi = np.inf, -np.inf
         for i, (h, lab) in enumerate(zip(hists, labels)):

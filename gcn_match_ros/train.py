@@ -336,17 +336,19 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
     """Forward pass and loss of one batch; the caller runs backward and the optimizer.
 
     The loss is the mean over the batch's graphs of
-    ``recon_weight · recon + epipolar_weight · epipolar`` (the epipolar term only for
-    graphs with poses). Works under ``torch.no_grad`` too (validation).
+    ``recon_weight · recon + epipolar_weight · epipolar + edge_weight · edge`` (the
+    epipolar and edge terms only for graphs with poses, the edge term only for models with
+    an edge head). Works under ``torch.no_grad`` too (validation).
 
     Returns:
-        ``(loss, logs)``: () tensor; logs with float ``loss``, ``recon`` (batch mean)
-        and ``epipolar`` (mean over graphs with poses; NaN if none).
+        ``(loss, logs)``: () tensor; logs with float ``loss``, ``recon`` (batch mean),
+        ``epipolar`` and ``edge`` (means over graphs with poses; NaN if none). The epipolar
+        term is logged even at weight 0, so runs with and without it compare on it.
     """
     E_all = model(batch.x, batch.edge_index, batch.edge_weight, batch.node_ptr)
     ptr = batch.node_ptr.tolist()
     total = E_all.new_zeros(())
-    recon_sum, epi_sum, n_epi = 0.0, 0.0, 0
+    recon_sum, epi_sum, n_epi, edge_sum, n_edge = 0.0, 0.0, 0, 0.0, 0
     for b, sample in enumerate(batch.samples):
         E = E_all[ptr[b]:ptr[b + 1]]
         ei, ew = batch.edges[b]
@@ -356,22 +358,27 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
                                     include_within_view=config.include_within_view)
         loss = config.recon_weight * recon
         recon_sum += float(recon.detach())
-        if config.epipolar_weight and sample.has_poses:
+        if sample.has_poses:
             p = sample.problem
             epi = epipolar_loss(E, torch.from_numpy(sample.points), torch.from_numpy(p.R),
                                 torch.from_numpy(p.t), vo)
-            loss = loss + config.epipolar_weight * epi
+            if config.epipolar_weight:
+                loss = loss + config.epipolar_weight * epi
             epi_sum += float(epi.detach())
             n_epi += 1
         net = model.module if hasattr(model, "module") else model
         if config.edge_weight and sample.has_poses and getattr(net, "edge_head", None) is not None:
             from .edge_head import edge_training_loss  # optional edge-scoring head
-            loss = loss + config.edge_weight * edge_training_loss(net, E, sample.problem)
+            edge = edge_training_loss(net, E, sample.problem)
+            loss = loss + config.edge_weight * edge
+            edge_sum += float(edge.detach())
+            n_edge += 1
         total = total + loss
     nb = len(batch.samples)
     total = total / nb
     logs = {"loss": float(total.detach()), "recon": recon_sum / nb,
-            "epipolar": epi_sum / n_epi if n_epi else float("nan")}
+            "epipolar": epi_sum / n_epi if n_epi else float("nan"),
+            "edge": edge_sum / n_edge if n_edge else float("nan")}
     return total, logs
 
 

@@ -57,8 +57,13 @@ def test_sample_batch_and_step():
     torch.manual_seed(0)
     model = GCN(MODEL)
     loss, logs = train_step(model, batch, TrainConfig())
-    assert loss.requires_grad and set(logs) == {"loss", "recon", "epipolar"}
+    assert loss.requires_grad and set(logs) == {"loss", "recon", "epipolar", "edge"}
     assert logs["epipolar"] > 0 and np.isfinite(logs["loss"])
+    assert np.isnan(logs["edge"])  # no edge head
+    # at epipolar weight 0 the term is still logged but not part of the loss
+    loss0, logs0 = train_step(model, batch, TrainConfig(epipolar_weight=0.0))
+    assert logs0["epipolar"] == pytest.approx(logs["epipolar"])
+    assert logs0["loss"] == pytest.approx(logs["recon"], rel=1e-5)
     loss.backward()
     ev = evaluate(model, samples, TrainConfig(batch_size=1))
     assert ev["loss"] == pytest.approx(logs["loss"], rel=1e-4)
