@@ -1,16 +1,19 @@
-"""Train the shipped model gcn_match_ros/models/default.pt (the exact command is in models/README.md).
+"""Train the shipped models gcn_match_ros/models/default.pt (SIFT) and orb.pt (ORB); the exact
+commands are in models/README.md.
 
-Data (all made here with datasets.convert, SIFT 500, windows of 3, 4 and 6 consecutive views):
+Data (all made here with datasets.convert, SIFT or ORB 500, windows of 3, 4 and 6 consecutive views):
 - train: Strecha fountain-P11 and entry-P10 windows whose images are all < 6, Middlebury temple;
 - validation: fountain-P11 / entry-P10 windows whose images are all >= 6 (the trainer's
   validation loss; their gt labels are used only to compare checkpoints / thresholds by F1);
-- never touched: Strecha castle-P19 and all Oxford scenes (held-out test).
+- never touched: Strecha castle-P19 and all Oxford scenes (held-out test);
+- optionally (--synthetic, as default.pt) generated scenes mixed 1:1 into the training stream.
 Loss: the project's trainer (train.train) with the paper's L1 reconstruction + epipolar loss on
 the embeddings and the edge head's label-free loss (TrainConfig.edge_weight; edge_head.py).
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import re
 import shutil
 import sys
@@ -27,10 +30,22 @@ from gcn_match_ros.edge_features import EDGE_FEATURES  # noqa: E402
 from gcn_match_ros.features import FeatureConfig, feature_dim  # noqa: E402
 from gcn_match_ros.graph import GraphConfig  # noqa: E402
 from gcn_match_ros.model import GCNConfig  # noqa: E402
-from gcn_match_ros.train import ProblemFileSource, TrainConfig, train  # noqa: E402
+from gcn_match_ros.solvers.gcn import SHIPPED_MODELS  # noqa: E402
+from gcn_match_ros import synthetic  # noqa: E402
+from gcn_match_ros.train import InterleavedSource, ProblemFileSource, SyntheticSource, TrainConfig, train  # noqa: E402
 
 TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
+DESCRIPTOR_DIMS = {"sift": 128, "orb": 256}  # ORB: 32 bytes unpacked to 256 bits
 SPLIT_AT = 6  # Strecha windows with every image < SPLIT_AT train, every image >= SPLIT_AT validate
+
+
+SYNTHETIC_PRESETS = ("rome16k", "partial", "easy")
+
+
+def synthetic_scene(presets, rng):
+    """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views."""
+    preset = getattr(synthetic, presets[int(rng.integers(len(presets)))])
+    return synthetic.random_scene_problem(preset(int(rng.integers(3, 5))), rng)
 
 
 def images_of(name: str):
@@ -56,42 +71,59 @@ def split(files):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--data", default="/tmp/real_gcn/sift", help="problem folder (made if empty)")
+    ap.add_argument("--detector", choices=("sift", "orb"), default="sift")
+    ap.add_argument("--data", default="", help="problem folder (made if empty); default /tmp/real_gcn/train_<detector>")
     ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--out", default="/tmp/real_gcn/run")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--batch-size", type=int, default=2)
-    ap.add_argument("--edge-weight", type=float, default=1.0)
+    ap.add_argument("--edge-weight", type=float, default=1.0, help="edge head loss weight; 0: no edge head")
+    ap.add_argument("--epipolar-weight", type=float, default=10.0, help="epipolar loss weight on the embeddings")
+    ap.add_argument("--synthetic", default="",
+                    help="mix generated scenes 1:1 into the training stream: comma-separated synthetic presets "
+                         "(rome16k, partial, easy), 3 or 4 views each (SIFT only)")
     ap.add_argument("--widths", default="32,32,64,64,64,64")
-    ap.add_argument("--install", action="store_true", help="copy the result to gcn_match_ros/models/default.pt")
+    ap.add_argument("--install", action="store_true",
+                    help="copy the result to gcn_match_ros/models/<SHIPPED_MODELS[descriptor dim]>")
     ap.add_argument("--threshold", type=float, default=0.3,
-                    help="rounding threshold stored with the model (chosen by validation F1 among "
-                         "0.1, 0.2, ..., 0.7; see models/README.md)")
+                    help="rounding threshold stored with the model (models/README.md: 0.2 for default.pt, "
+                         "chosen by validation F1; 0.3 for orb.pt)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    data = Path(args.data)
+    data = Path(args.data or f"/tmp/real_gcn/train_{args.detector}")
     if not list(data.glob("*.npz")):
-        convert(Path(args.data_root), data, TRAIN_SCENES, sizes=(3, 4, 6), detectors=("sift",), max_features=500)
+        convert(Path(args.data_root), data, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(args.detector,),
+                max_features=500)
     train_f, val_f = split(sorted(data.glob("*.npz")))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
     widths = tuple(int(w) for w in args.widths.split(","))
     fc = FeatureConfig()
-    mc = GCNConfig(in_dim=feature_dim(128, fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
-                   edge_features=len(EDGE_FEATURES), edge_hidden=64, edge_k=4)
+    descriptor_dim = DESCRIPTOR_DIMS[args.detector]
+    mc = GCNConfig(in_dim=feature_dim(descriptor_dim, fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
+                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=64, edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
+                     epipolar_weight=args.epipolar_weight,
                      val_every=max(args.steps // 4, 1), checkpoint_every=max(args.steps // 4, 1), val_size=len(val_f),
                      graph=GraphConfig(k=4), features=fc, progress=False, plot=False, seed=0)
-    train(mc, ProblemFileSource(train_f, seed=0), ProblemFileSource(val_f, shuffle=False, cycle=False), tc,
-          out_dir=args.out)
+    source = ProblemFileSource(train_f, seed=0)
+    if args.synthetic:
+        if args.detector != "sift":
+            raise SystemExit("--synthetic: the generated scenes have SIFT-like descriptors; use --detector sift")
+        presets = tuple(args.synthetic.split(","))
+        unknown = [p for p in presets if p not in SYNTHETIC_PRESETS]
+        if unknown:
+            raise SystemExit(f"--synthetic: unknown presets {unknown}; choose from {SYNTHETIC_PRESETS}")
+        source = InterleavedSource([source, SyntheticSource(functools.partial(synthetic_scene, presets), seed=0)])
+    train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         # the final weights, saved without optimizer state (see models/README.md)
         from gcn_match_ros.model import load_checkpoint, save_checkpoint
         model, meta = load_checkpoint(best)
         config = dict(meta["config"], solver={"threshold": args.threshold})
-        save_checkpoint(ROOT / "gcn_match_ros" / "models" / "default.pt", model, config,
-                        {"step": int(meta["extra"].get("step", 0))})
-        print("installed", ROOT / "gcn_match_ros" / "models" / "default.pt")
+        target = SHIPPED_MODELS[descriptor_dim]
+        save_checkpoint(target, model, config, {"step": int(meta["extra"].get("step", 0))})
+        print("installed", target)
 
 
 if __name__ == "__main__":

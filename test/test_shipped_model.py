@@ -1,4 +1,5 @@
-"""The shipped model loads safely, beats nn on a held-out problem, and gives cycle-consistent tracks."""
+"""The shipped models load safely, beat nn on held-out problems, and give cycle-consistent tracks;
+the gcn solver picks the shipped model by descriptor dimension."""
 from pathlib import Path
 
 import numpy as np
@@ -10,20 +11,48 @@ from gcn_match_ros.model import load_checkpoint
 from gcn_match_ros.problem import load_problem
 from gcn_match_ros.rounding import is_cycle_consistent
 from gcn_match_ros.solvers import get_solver
-from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT
+from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT, SHIPPED_MODELS
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 # Oxford is never trained on (no poses): a held-out problem.
 HELD_OUT = Path(__file__).resolve().parents[2] / "shared" / "reference" / "oxford-dev" / "problems" / \
     "oxford_boat_sift_123.npz"
 
 
-def test_shipped_model_loads_weights_only():
-    assert DEFAULT_CHECKPOINT.is_file()
-    assert DEFAULT_CHECKPOINT.stat().st_size < 10 * 2 ** 20
-    payload = torch.load(DEFAULT_CHECKPOINT, map_location="cpu", weights_only=True)
+@pytest.mark.parametrize("descriptor_dim", sorted(SHIPPED_MODELS))
+def test_shipped_models_load_weights_only(descriptor_dim):
+    path = SHIPPED_MODELS[descriptor_dim]
+    assert path.is_file()
+    assert path.stat().st_size < 10 * 2 ** 20
+    payload = torch.load(path, map_location="cpu", weights_only=True)
     assert payload["format"] == "gcn_match_ros/gcn-checkpoint"
-    model, meta = load_checkpoint(DEFAULT_CHECKPOINT)
+    model, meta = load_checkpoint(path)
     assert getattr(model, "edge_head", None) is not None
+    # the model takes exactly this descriptor dimension (+ x, y, scale, orientation)
+    assert model.config.in_dim == descriptor_dim + 4
+    assert 0.0 < meta["config"]["solver"]["threshold"] < 1.0
+
+
+@pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason="shared data not available")
+def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(one_torch_thread):
+    from gcn_match_ros.datasets import load_scene, make_problem
+
+    scene = load_scene(DATA, "oxford/graf")  # Oxford: never trained on
+    orb = make_problem(scene, (0, 1, 2), "orb", 500)
+    sift = load_problem(HELD_OUT)
+    solver = get_solver("gcn")  # one solver instance serves both descriptor types
+    r_orb = solver.solve(orb)
+    assert solver.checkpoint_path == str(SHIPPED_MODELS[256])
+    r_sift = solver.solve(sift)
+    assert solver.checkpoint_path == str(SHIPPED_MODELS[128])
+    assert score_result(orb, r_orb)["F1"] > score_result(orb, get_solver("nn").solve(orb))["F1"] + 0.02
+    assert is_cycle_consistent(r_orb.track, orb.view_index)
+    assert r_sift.track.shape == (sift.n_keypoints,)
+    # an explicit checkpoint is never switched, and a wrong descriptor dimension is a clear error
+    fixed = get_solver(f"gcn:checkpoint={SHIPPED_MODELS[128]}")
+    with pytest.raises(ValueError, match="260"):
+        fixed.solve(orb)
 
 
 @pytest.mark.skipif(not HELD_OUT.is_file(), reason="shared reference problems not available")
@@ -40,3 +69,16 @@ def test_shipped_model_beats_nn_on_held_out_and_is_cycle_consistent():
     keep = t >= 0
     pairs = np.stack([t[keep], problem.view_index[keep]], 1)
     assert np.unique(pairs, axis=0).shape[0] == pairs.shape[0]
+
+
+@pytest.mark.parametrize("preset", ["rome16k", "partial"])
+def test_shipped_model_beats_mutual_nn_on_generated_scenes(one_torch_thread, preset):
+    """Mean F1 over three generated scenes with seeds no training stream used (training: [0, k])."""
+    from gcn_match_ros import synthetic
+
+    f_gcn, f_nn = [], []
+    for seed in range(3):
+        problem = synthetic.random_scene_problem(getattr(synthetic, preset)(3), np.random.default_rng([11, seed]))
+        f_gcn.append(score_result(problem, get_solver("gcn").solve(problem))["F1"])
+        f_nn.append(score_result(problem, get_solver("nn:graph=mutual").solve(problem))["F1"])
+    assert np.mean(f_gcn) > np.mean(f_nn) + 0.02, (f_gcn, f_nn)
