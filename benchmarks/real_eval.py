@@ -125,8 +125,9 @@ def main(argv=None):
     out.append("matchals and pgdds (default settings, ~11 s and ~30 s a problem) ran on the held-out SIFT 3-view "
                "windows only, to keep the run near 10 minutes; their means are over those (see 'solved'); "
                "--quick leaves them and ORB out.  ")
-    out.append("ORB labels on Strecha pose scenes are not fit for benchmarking (datasets.py docstring); "
-               "the shipped gcn model is trained on 128-D SIFT and refuses ORB inputs (256 unpacked bits -> 260 features; skipped).")
+    out.append("ORB labels on Strecha pose scenes (castle-P19 here) are not fit for benchmarking (datasets.py "
+               "docstring): read the ORB castle column with care. gcn runs the shipped model of each descriptor "
+               "type (models/default.pt for SIFT, models/orb.pt for ORB).")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(out) + "\n")
     print("wrote", args.out)
