@@ -28,7 +28,6 @@ import argparse
 import os
 import platform
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -114,6 +113,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     from rclpy.signals import SignalHandlerOptions
 
     from gcn_match_msgs.msg import Keypoints, MatchWindow
+    from gcn_match_ros.ros.spin import stop_node_process
 
     ns = f"/bench{n_cams}x{n_kp}"
     cams = [f"cam{v}" for v in range(n_cams)]
@@ -189,12 +189,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
             time.sleep(0.01)
         diag_end = dict(diag)
     finally:
-        if node_proc.poll() is None:
-            node_proc.send_signal(signal.SIGINT)
-            try:
-                node_proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                node_proc.kill()
+        stop_node_process(node_proc, timeout=20)
         executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

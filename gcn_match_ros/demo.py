@@ -25,7 +25,6 @@ import argparse
 import collections
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -296,6 +295,7 @@ def main(argv=None) -> int:
          f"{expected} windows; solver {args.solver}")
 
     from .ros import FASTDDS_PROFILE_ENV, use_large_shm
+    from .ros.spin import stop_node_process
 
     env = dict(os.environ)
     use_large_shm(env)  # bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
@@ -358,13 +358,7 @@ def main(argv=None) -> int:
     finally:
         if player is not None and player.poll() is None:
             player.terminate()
-        if node.poll() is None:
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                node.kill()
-                node.wait()
+        stop_node_process(node, timeout=15)
         log_fh.close()
         if col is not None:
             col.close()

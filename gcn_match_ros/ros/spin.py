@@ -1,13 +1,15 @@
 """The life cycle every executable node shares: init, start, spin until a signal, clean up."""
 from __future__ import annotations
 
+import signal
+import subprocess
 from typing import Callable, Optional, Tuple, Type
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-__all__ = ["run_node"]
+__all__ = ["run_node", "stop_node_process"]
 
 
 def run_node(make_node: Callable[[], Node], name: str, args=None,
@@ -51,3 +53,16 @@ def run_node(make_node: Callable[[], Node], name: str, args=None,
         executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return 0
+
+
+def stop_node_process(proc: subprocess.Popen, timeout: float) -> None:
+    """Stop a node running as a child process the way Ctrl-C does (SIGINT: it cleans up and
+    exits), killing it when it has not exited after ``timeout`` seconds."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
