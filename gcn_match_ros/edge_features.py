@@ -74,8 +74,6 @@ def _squash(d: np.ndarray) -> np.ndarray:
 
 def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> EdgeSet:
     """Candidate edges of ``problem`` with their features (see the module docstring)."""
-    from .geometry_verify import MIN_SEEDS, fit_pair, residuals
-
     desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
     offs = problem.view_offsets
     V = problem.n_views
@@ -86,64 +84,10 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
         a0, a1 = int(offs[i]), int(offs[i + 1])
         for j in range(i + 1, V):
             b0, b1 = int(offs[j]), int(offs[j + 1])
-            na, nb = a1 - a0, b1 - b0
-            if na < 2 or nb < 2:
+            if a1 - a0 < 2 or b1 - b0 < 2:
                 continue
-            sim_t = desc[a0:a1] @ desc[b0:b1].T
-            sim = sim_t.numpy()
-            k = min(config.k, na, nb)
-            # The RANK_CAP + 1 best similarities of every row and column, best first: the
-            # candidates, the ratio test and the (capped) ranks all read from them.
-            top_r, ir = torch.topk(sim_t, min(RANK_CAP + 1, nb), dim=1)
-            top_c, ic = torch.topk(sim_t.T, min(RANK_CAP + 1, na), dim=1)
-            top_r, ir, top_c, ic = top_r.numpy(), ir.numpy(), top_c.numpy(), ic.numpy()
-            best_r, sec_r = top_r[:, 0], top_r[:, 1]
-            best_c, sec_c = top_c[:, 0], top_c[:, 1]
-            nn_r, nn_c = ir[:, 0], ic[:, 0]
-            ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
-            eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
-            mutual_ab = (nn_c[nn_r] == np.arange(na))
-            d = lambda c: np.sqrt(np.maximum(2 - 2 * c, 0))
-            ratio_r = d(best_r) / np.maximum(d(sec_r), 1e-9)
-            ratio_c = d(best_c) / np.maximum(d(sec_c), 1e-9)
-            conf_a = np.flatnonzero(mutual_ab & (ratio_r < config.ratio) & (ratio_c[nn_r] < config.ratio))
-            conf_b = nn_r[conf_a]
-            model = None
-            if config.geometry:
-                seed_a, seed_b = conf_a, conf_b
-                if seed_a.shape[0] < MIN_SEEDS:
-                    # too few ratio-test survivors (repetitive or noisy descriptors): fit on all
-                    # mutual nearest neighbours instead; the robust estimator copes with the outliers
-                    seed_a = np.flatnonzero(mutual_ab)
-                    seed_b = nn_r[seed_a]
-                model = fit_pair(kp[a0:a1][seed_a], kp[b0:b1][seed_b])
-                model = model.selected() if model is not None else None
-            guided = np.zeros(ea.shape[0], bool)
-            if config.guided and model is not None:
-                ga, gb = _guided(sim, kp[a0:a1], kp[b0:b1], model, config.guide_px)
-                ea = np.concatenate([ea, ga])
-                eb = np.concatenate([eb, gb])
-                guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
-            key = ea * nb + eb
-            uniq, first = np.unique(key, return_index=True)
-            g2 = np.zeros(uniq.shape[0], bool)
-            np.logical_or.at(g2, np.searchsorted(uniq, key), guided)
-            ea, eb = uniq // nb, uniq % nb
-            s = sim[ea, eb]
-            rank_a = (top_r[ea] > s[:, None]).sum(1)  # exact below RANK_CAP, else >= RANK_CAP
-            rank_b = (top_c[eb] > s[:, None]).sum(1)
-            rat_a = d(s) / np.maximum(np.where(rank_a == 0, d(sec_r[ea]), d(best_r[ea])), 1e-9)
-            rat_b = d(s) / np.maximum(np.where(rank_b == 0, d(sec_c[eb]), d(best_c[eb])), 1e-9)
-            mutual = (rank_a == 0) & (rank_b == 0)
-            conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
-            if model is not None:
-                rh, rf = residuals(model, kp[a0:a1][ea], kp[b0:b1][eb])
-                has = 2.0 if model.planar else 1.0
-            else:
-                rh = rf = np.full(ea.shape[0], np.inf)
-                has = 0.0
-            parts.append((ea + a0, eb + b0, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5),
-                          np.minimum(rank_a, RANK_CAP), np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, has, g2))
+            ea, eb, *rest = _pair_edges(desc[a0:a1], desc[b0:b1], kp[a0:a1], kp[b0:b1], config)
+            parts.append((ea + a0, eb + b0, *rest))
     if not parts:
         z = np.zeros(0, np.int64)
         return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool))
@@ -163,6 +107,73 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
     feats = np.stack([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf,
                       tri_all, tri_conf, _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided], axis=1)
     return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
+
+
+def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig):
+    """Candidates of one view pair (local indices) and their per-pair features, in the order
+    ``candidate_edges`` concatenates them."""
+    from .geometry_verify import MIN_SEEDS, fit_pair, residuals
+
+    na, nb = desc_a.shape[0], desc_b.shape[0]
+    sim_t = desc_a @ desc_b.T
+    sim = sim_t.numpy()
+    k = min(config.k, na, nb)
+    # The RANK_CAP + 1 best similarities of every row and column, best first: the
+    # candidates, the ratio test and the (capped) ranks all read from them.
+    top_r, ir = torch.topk(sim_t, min(RANK_CAP + 1, nb), dim=1)
+    top_c, ic = torch.topk(sim_t.T, min(RANK_CAP + 1, na), dim=1)
+    top_r, ir, top_c, ic = top_r.numpy(), ir.numpy(), top_c.numpy(), ic.numpy()
+    best_r, sec_r = top_r[:, 0], top_r[:, 1]
+    best_c, sec_c = top_c[:, 0], top_c[:, 1]
+    nn_r, nn_c = ir[:, 0], ic[:, 0]
+    ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
+    eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
+    mutual_ab = (nn_c[nn_r] == np.arange(na))
+    ratio_r = _dist(best_r) / np.maximum(_dist(sec_r), 1e-9)
+    ratio_c = _dist(best_c) / np.maximum(_dist(sec_c), 1e-9)
+    conf_a = np.flatnonzero(mutual_ab & (ratio_r < config.ratio) & (ratio_c[nn_r] < config.ratio))
+    conf_b = nn_r[conf_a]
+    model = None
+    if config.geometry:
+        seed_a, seed_b = conf_a, conf_b
+        if seed_a.shape[0] < MIN_SEEDS:
+            # too few ratio-test survivors (repetitive or noisy descriptors): fit on all
+            # mutual nearest neighbours instead; the robust estimator copes with the outliers
+            seed_a = np.flatnonzero(mutual_ab)
+            seed_b = nn_r[seed_a]
+        model = fit_pair(xa[seed_a], xb[seed_b])
+        model = model.selected() if model is not None else None
+    guided = np.zeros(ea.shape[0], bool)
+    if config.guided and model is not None:
+        ga, gb = _guided(sim, xa, xb, model, config.guide_px)
+        ea = np.concatenate([ea, ga])
+        eb = np.concatenate([eb, gb])
+        guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
+    key = ea * nb + eb
+    uniq = np.unique(key)
+    g2 = np.zeros(uniq.shape[0], bool)
+    np.logical_or.at(g2, np.searchsorted(uniq, key), guided)
+    ea, eb = uniq // nb, uniq % nb
+    s = sim[ea, eb]
+    rank_a = (top_r[ea] > s[:, None]).sum(1)  # exact below RANK_CAP, else >= RANK_CAP
+    rank_b = (top_c[eb] > s[:, None]).sum(1)
+    rat_a = _dist(s) / np.maximum(np.where(rank_a == 0, _dist(sec_r[ea]), _dist(best_r[ea])), 1e-9)
+    rat_b = _dist(s) / np.maximum(np.where(rank_b == 0, _dist(sec_c[eb]), _dist(best_c[eb])), 1e-9)
+    mutual = (rank_a == 0) & (rank_b == 0)
+    conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
+    if model is not None:
+        rh, rf = residuals(model, xa[ea], xb[eb])
+        has = 2.0 if model.planar else 1.0
+    else:
+        rh = rf = np.full(ea.shape[0], np.inf)
+        has = 0.0
+    return (ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5),
+            np.minimum(rank_a, RANK_CAP), np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, has, g2)
+
+
+def _dist(c: np.ndarray) -> np.ndarray:
+    """Distance between unit vectors from their cosine (what Lowe's ratio is defined on)."""
+    return np.sqrt(np.maximum(2 - 2 * c, 0))
 
 
 def _guided(sim, xa, xb, model, px):
