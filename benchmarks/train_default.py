@@ -84,7 +84,7 @@ def main(argv=None):
                          "(rome16k, partial, easy), 3 or 4 views each (SIFT only)")
     ap.add_argument("--widths", default="32,32,64,64,64,64")
     ap.add_argument("--install", action="store_true",
-                    help="copy the result to gcn_match_ros/models/<SHIPPED_MODELS[descriptor dim]>")
+                    help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
     ap.add_argument("--threshold", type=float, default=0.3,
                     help="rounding threshold stored with the model (models/README.md: 0.2 for default.pt, "
                          "chosen by validation F1; 0.3 for orb.pt)")
@@ -121,7 +121,7 @@ def main(argv=None):
         from gcn_match_ros.model import load_checkpoint, save_checkpoint
         model, meta = load_checkpoint(best)
         config = dict(meta["config"], solver={"threshold": args.threshold})
-        target = SHIPPED_MODELS[descriptor_dim]
+        target = SHIPPED_MODELS[(descriptor_dim, args.detector == "orb")]
         save_checkpoint(target, model, config, {"step": int(meta["extra"].get("step", 0))})
         print("installed", target)
 

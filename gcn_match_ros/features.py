@@ -15,7 +15,7 @@ descriptor.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Dict
+from typing import Any, Dict, Tuple
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from .graph import normalize_descriptors
 from .problem import Problem
 
 __all__ = ["FeatureConfig", "node_features", "feature_dim", "calibrated_points",
-           "normalized_positions"]
+           "normalized_positions", "descriptor_kind"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,6 +61,15 @@ class FeatureConfig:
         if unknown:
             raise ValueError(f"FeatureConfig: unknown keys {sorted(unknown)}")
         return cls(**d)
+
+
+def descriptor_kind(descriptors: np.ndarray) -> Tuple[int, bool]:
+    """(dimension, binary) of an (N, D) descriptor array; binary = every entry 0 or 1 (the
+    problem format's unpacked bits, e.g. ORB), real-valued otherwise (SIFT, learned
+    descriptors). An empty array counts as real-valued."""
+    d = np.asarray(descriptors)
+    binary = bool(d.size) and bool(np.all((d == 0) | (d == 1)))
+    return int(d.shape[1]) if d.ndim == 2 else 0, binary
 
 
 def feature_dim(descriptor_dim: int, config: FeatureConfig = FeatureConfig()) -> int:

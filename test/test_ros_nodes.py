@@ -720,17 +720,19 @@ def test_feature_node_turns_images_into_keypoints():
 
 
 @pytest.mark.skipif(not _gcn_model_available(), reason="shipped model missing")
-def test_matcher_gcn_takes_orb_and_drops_unsupported_dimensions(harness_factory):
-    """With the shipped models the gcn node takes the first frame's descriptor type (128-D
-    float or 256-bit binary); a dimension no model takes is a counted drop, not a crash."""
+def test_matcher_gcn_takes_orb_and_drops_descriptors_without_a_model(harness_factory):
+    """With the shipped models the gcn node takes 128-D real-valued (SIFT) or 256-bit binary
+    (ORB) frames; descriptors no model was trained for are counted drops, not a crash and
+    not matched by the wrong model."""
     h = harness_factory(solver="gcn")
     clock = iter(time.time() + 0.3 * k for k in range(100))
     rng = np.random.default_rng(3)
     n = 50
-    odd = Frame(camera_id="cam0", stamp=next(clock), keypoints=rng.uniform(0, 600, (n, 2)),
-                descriptors=np.abs(rng.normal(size=(n, 64))).astype(np.float32))
-    h.publish(odd)
-    h.wait_diag(lambda v: v.get("frames dropped descriptor_dim") == "1")
+    for dim in (64, 256):  # 256-D real-valued: a learned descriptor, not ORB bits
+        odd = Frame(camera_id="cam0", stamp=next(clock), keypoints=rng.uniform(0, 600, (n, 2)),
+                    descriptors=np.abs(rng.normal(size=(n, dim))).astype(np.float32))
+        h.publish(odd)
+    h.wait_diag(lambda v: v.get("frames dropped descriptor_kind") == "2")
     bits = rng.integers(0, 2, size=(n, 256))
     xy = rng.uniform(20, 620, size=(n, 2))
     t = next(clock)

@@ -1,5 +1,6 @@
 """The shipped models load safely, beat nn on held-out problems, and give cycle-consistent tracks;
 the gcn solver picks the shipped model by descriptor dimension."""
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -20,9 +21,10 @@ HELD_OUT = Path(__file__).resolve().parents[2] / "shared" / "reference" / "oxfor
     "oxford_boat_sift_123.npz"
 
 
-@pytest.mark.parametrize("descriptor_dim", sorted(SHIPPED_MODELS))
-def test_shipped_models_load_weights_only(descriptor_dim):
-    path = SHIPPED_MODELS[descriptor_dim]
+@pytest.mark.parametrize("kind", sorted(SHIPPED_MODELS))
+def test_shipped_models_load_weights_only(kind):
+    descriptor_dim, _ = kind
+    path = SHIPPED_MODELS[kind]
     assert path.is_file()
     assert path.stat().st_size < 10 * 2 ** 20
     payload = torch.load(path, map_location="cpu", weights_only=True)
@@ -43,16 +45,25 @@ def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(
     sift = load_problem(HELD_OUT)
     solver = get_solver("gcn")  # one solver instance serves both descriptor types
     r_orb = solver.solve(orb)
-    assert solver.checkpoint_path == str(SHIPPED_MODELS[256])
+    assert solver.checkpoint_path == str(SHIPPED_MODELS[(256, True)])
     r_sift = solver.solve(sift)
-    assert solver.checkpoint_path == str(SHIPPED_MODELS[128])
+    assert solver.checkpoint_path == str(SHIPPED_MODELS[(128, False)])
     assert score_result(orb, r_orb)["F1"] > score_result(orb, get_solver("nn").solve(orb))["F1"] + 0.02
     assert is_cycle_consistent(r_orb.track, orb.view_index)
     assert r_sift.track.shape == (sift.n_keypoints,)
     # an explicit checkpoint is never switched, and a wrong descriptor dimension is a clear error
-    fixed = get_solver(f"gcn:checkpoint={SHIPPED_MODELS[128]}")
+    fixed = get_solver(f"gcn:checkpoint={SHIPPED_MODELS[(128, False)]}")
     with pytest.raises(ValueError, match="260"):
         fixed.solve(orb)
+    # descriptors no shipped model was trained for are refused, not matched by the wrong model:
+    # 256-D real-valued (a learned descriptor) and 128-bit binary (BRIEF-16)
+    rng = np.random.default_rng(0)
+    learned = dataclasses.replace(orb, descriptors=rng.normal(size=orb.descriptors.shape).astype(np.float32))
+    with pytest.raises(ValueError, match="256-D real-valued"):
+        solver.solve(learned)
+    brief = dataclasses.replace(orb, descriptors=orb.descriptors[:, :128].copy())
+    with pytest.raises(ValueError, match="128-bit binary"):
+        solver.solve(brief)
 
 
 @pytest.mark.skipif(not HELD_OUT.is_file(), reason="shared reference problems not available")

@@ -49,6 +49,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from .. import solvers as _solvers
+from ..features import descriptor_kind
 from ..graph import build_graph
 from ..problem import Problem
 from ..solvers import available_solvers, get_solver, parse_method
@@ -56,7 +57,7 @@ from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, window
 from .conversions import (MatchWindowError, keypoints_to_frame, result_to_match_window,
                           validate_match_window)
 
-__all__ = ["MatcherNode", "StartupError", "create_solver", "solver_descriptor_dims", "main", "INPUT_QOS"]
+__all__ = ["MatcherNode", "StartupError", "create_solver", "solver_descriptor_kinds", "main", "INPUT_QOS"]
 
 NODE_NAME = "matcher_node"
 #: Accepted values of the ``input_qos`` parameter.
@@ -127,25 +128,29 @@ def create_solver(spec: str, checkpoint: str = "", device: str = "cpu"):
                            + f": {type(exc).__name__}: {exc}") from None
 
 
-def solver_descriptor_dims(solver) -> Tuple[int, ...]:
-    """Descriptor dimensions a solver takes (a learned model's input; the ``gcn`` solver with
-    the shipped models: one per model); () when any works."""
-    dims = getattr(solver, "descriptor_dims", None)
-    return tuple(int(d) for d in dims) if dims else ()
+def solver_descriptor_kinds(solver) -> Tuple[Tuple[int, bool], ...]:
+    """(dimension, binary) of the descriptors a solver takes (a learned model's input; the
+    ``gcn`` solver with the shipped models: one per model); () when any works."""
+    kinds = getattr(solver, "descriptor_kinds", None)
+    return tuple((int(d), bool(b)) for d, b in kinds) if kinds else ()
 
 
 def _dims_text(dims: Tuple[int, ...]) -> str:
     return " or ".join(str(d) for d in dims)
 
 
-def _warmup_problem(dim: int, views: int = 3, points: int = 40, seed: int = 0) -> Problem:
-    """Small permuted-views problem (views see the same points in random order)."""
+def _warmup_problem(dim: int, binary: bool = False, views: int = 3, points: int = 40, seed: int = 0) -> Problem:
+    """Small permuted-views problem (views see the same points in random order); binary:
+    0/1 descriptors with a few flipped bits per view."""
     rng = np.random.default_rng(seed)
-    base = np.abs(rng.normal(size=(points, dim)))
+    base = rng.integers(0, 2, size=(points, dim)) if binary else np.abs(rng.normal(size=(points, dim)))
     kps, desc = [], []
     for _ in range(views):
         perm = rng.permutation(points)
-        desc.append(base[perm] + 0.05 * rng.normal(size=(points, dim)))
+        if binary:
+            desc.append((base[perm] ^ (rng.random((points, dim)) < 0.03)).astype(np.float32))
+        else:
+            desc.append(base[perm] + 0.05 * rng.normal(size=(points, dim)))
         kps.append(rng.uniform(0, 640, size=(points, 2)))
     return Problem(view_offsets=np.arange(views + 1) * points, keypoints=np.concatenate(kps),
                    descriptors=np.concatenate(desc))
@@ -242,7 +247,8 @@ class MatcherNode(Node):
         t0 = time.perf_counter()
         self._solver = create_solver(spec, gp("checkpoint").value, device)
         self._method = self._solver.describe()
-        self._solver_dims = solver_dims = solver_descriptor_dims(self._solver)
+        self._solver_kinds = solver_descriptor_kinds(self._solver)
+        self._solver_dims = solver_dims = tuple(sorted({d for d, _ in self._solver_kinds}))
         if solver_dims and config.descriptor_dim not in (0,) + solver_dims:
             raise StartupError(f"parameter descriptor_dim={config.descriptor_dim} but solver {self._method} "
                                f"takes {_dims_text(solver_dims)}-D descriptors")
@@ -333,9 +339,10 @@ class MatcherNode(Node):
         """One solve on a small problem: first-call costs leave the first real window, and a
         solver that cannot run at all is found at start-up."""
         t = time.perf_counter()
-        for d in ((dim,) if dim else self._solver_dims or (128,)):  # every model loads at start-up
+        kinds = [k for k in self._solver_kinds if not dim or k[0] == dim] or [(dim or 128, False)]
+        for d, binary in kinds:  # every model loads at start-up
             try:
-                self._solver.solve(_warmup_problem(d))
+                self._solver.solve(_warmup_problem(d, binary))
             except Exception as exc:
                 raise StartupError(f"solver {self._method} fails on a {d}-D warm-up window: "
                                    f"{type(exc).__name__}: {exc}") from None
@@ -393,15 +400,17 @@ class MatcherNode(Node):
             return
         with self._lock:
             cfg = self._assembler.config
-            if self._auto_dim and cfg.descriptor_dim == 0 and frame.count > 0:
-                dim = int(frame.descriptors.shape[1])
-                if self._solver_dims and dim not in self._solver_dims:
-                    self._stats.conversion_drops["descriptor_dim"] += 1
+            if self._solver_kinds and frame.count > 0:
+                kind = descriptor_kind(frame.descriptors)
+                if kind not in self._solver_kinds:
+                    self._stats.conversion_drops["descriptor_kind"] += 1
                     self.get_logger().warning(
-                        f"dropped a frame of {camera}: {dim}-D descriptors, solver {self._method} takes "
-                        f"{_dims_text(self._solver_dims)}-D (descriptor_dim)", throttle_duration_sec=_THROTTLE_S)
+                        f"dropped a frame of {camera}: {kind[0]}-D {'binary' if kind[1] else 'real-valued'} "
+                        f"descriptors, which solver {self._method} has no model for (descriptor_kind)",
+                        throttle_duration_sec=_THROTTLE_S)
                     return
-                cfg = dataclasses.replace(cfg, descriptor_dim=dim)
+            if self._auto_dim and cfg.descriptor_dim == 0 and frame.count > 0:
+                cfg = dataclasses.replace(cfg, descriptor_dim=int(frame.descriptors.shape[1]))
                 self._assembler.config = cfg
                 self.get_logger().info(f"descriptor dimension {cfg.descriptor_dim} (from the first frame, "
                                        f"{camera}); frames of another dimension are dropped")

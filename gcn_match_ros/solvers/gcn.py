@@ -15,7 +15,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from ..features import feature_dim
+from ..features import descriptor_kind, feature_dim
 from ..graph import CorrespondenceGraph, GraphConfig
 from ..problem import Problem, Result
 from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
@@ -23,11 +23,13 @@ from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
 __all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT", "SHIPPED_MODELS"]
 
 _MODELS = Path(__file__).resolve().parents[1] / "models"
-#: The models shipped inside the package (trained by the commands in models/README.md),
-#: by descriptor dimension: 128 = SIFT, 256 = ORB (32 bytes unpacked to bits).
-SHIPPED_MODELS = {128: _MODELS / "default.pt", 256: _MODELS / "orb.pt"}
-#: The SIFT model, used when no problem tells the descriptor dimension.
-DEFAULT_CHECKPOINT = SHIPPED_MODELS[128]
+#: The models shipped inside the package (trained by the commands in models/README.md), by
+#: descriptor kind (dimension, binary): 128-D real-valued = SIFT, 256 bits = ORB (32 bytes
+#: unpacked to 0/1). Other descriptors (e.g. 256-D real-valued learned ones, 128-bit BRIEF)
+#: have no shipped model: they need ``gcn:checkpoint=...``.
+SHIPPED_MODELS = {(128, False): _MODELS / "default.pt", (256, True): _MODELS / "orb.pt"}
+#: The SIFT model, used until a problem tells the descriptor kind.
+DEFAULT_CHECKPOINT = SHIPPED_MODELS[(128, False)]
 
 
 @dataclasses.dataclass
@@ -55,6 +57,10 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
+
+
+def _kind_text(kind: Tuple[int, bool]) -> str:
+    return f"{kind[0]}-bit binary" if kind[1] else f"{kind[0]}-D real-valued"
 
 
 @functools.lru_cache(maxsize=4)
@@ -91,20 +97,29 @@ class GCNSolver(Solver):
         self.config = dataclasses.replace(self.config, threshold=threshold)
 
     @property
-    def descriptor_dims(self) -> Tuple[int, ...]:
-        """Descriptor dimensions this solver takes: the checkpoint's, or every shipped model's."""
+    def descriptor_kinds(self) -> Tuple[Tuple[int, bool], ...]:
+        """(dimension, binary) of the descriptors this solver takes: every shipped model's kind,
+        or with a checkpoint setting its dimension, as real-valued and as binary."""
         if self.config.checkpoint:
-            fc = self.meta["feature_config"]
-            return (int(self.meta["model_config"].in_dim - feature_dim(0, fc)),)
-        return tuple(d for d, p in sorted(SHIPPED_MODELS.items()) if p.is_file())
+            dim = int(self.meta["model_config"].in_dim - feature_dim(0, self.meta["feature_config"]))
+            return ((dim, False), (dim, True))
+        return tuple(k for k, p in sorted(SHIPPED_MODELS.items()) if p.is_file())
 
     def _select_model(self, problem: Problem) -> None:
-        """With no checkpoint setting, switch to the shipped model for this descriptor dimension
-        (a dimension no shipped model takes keeps the current one, whose shape check names it)."""
-        if self.config.checkpoint:
+        """With no checkpoint setting, switch to the shipped model for this descriptor kind.
+
+        Raises:
+            ValueError: no shipped model takes these descriptors (named in the message).
+        """
+        if self.config.checkpoint or problem.n_keypoints == 0:
             return
-        path = SHIPPED_MODELS.get(int(problem.descriptors.shape[1]))
-        if path is not None and os.fspath(path) != self.checkpoint_path and path.is_file():
+        kind = descriptor_kind(problem.descriptors)
+        path = SHIPPED_MODELS.get(kind)
+        if path is None or not path.is_file():
+            have = ", ".join(_kind_text(k) for k in self.descriptor_kinds) or "none"
+            raise ValueError(f"no shipped gcn model takes {_kind_text(kind)} descriptors (shipped: {have}); "
+                             f"train one and pass gcn:checkpoint=PATH")
+        if os.fspath(path) != self.checkpoint_path:
             self._use(os.fspath(path))
 
     @property
