@@ -93,3 +93,15 @@ def test_shipped_model_beats_mutual_nn_on_generated_scenes(one_torch_thread, pre
         f_gcn.append(score_result(problem, get_solver("gcn").solve(problem))["F1"])
         f_nn.append(score_result(problem, get_solver("nn:graph=mutual").solve(problem))["F1"])
     assert np.mean(f_gcn) > np.mean(f_nn) + 0.02, (f_gcn, f_nn)
+
+
+def test_threshold_follows_the_model_unless_set():
+    solver = get_solver("gcn")
+    sift_t = load_checkpoint(SHIPPED_MODELS[(128, False)])[1]["config"]["solver"]["threshold"]
+    orb_t = load_checkpoint(SHIPPED_MODELS[(256, True)])[1]["config"]["solver"]["threshold"]
+    assert solver.threshold == sift_t and solver.describe() == "gcn:model=shipped"
+    solver._use(str(SHIPPED_MODELS[(256, True)]))
+    assert solver.threshold == orb_t and solver.describe() == "gcn:model=shipped"
+    fixed = get_solver("gcn:threshold=0.45")
+    fixed._use(str(SHIPPED_MODELS[(256, True)]))
+    assert fixed.threshold == 0.45

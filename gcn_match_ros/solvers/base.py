@@ -164,6 +164,11 @@ class Solver(abc.ABC):
     def graph_config(self) -> GraphConfig:
         return GRAPH_PRESETS[self.config.graph]
 
+    @property
+    def threshold(self) -> float:
+        """Score threshold of the rounding (the setting; a solver may derive it otherwise)."""
+        return self.config.threshold
+
     def describe(self) -> str:
         """``name:key=value,...`` for every setting that differs from the default."""
         default = self.Config()
@@ -188,7 +193,7 @@ class Solver(abc.ABC):
         soft, track = self.match(problem, graph)
         if track is None:
             track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
-                                  soft.scores, self.config.threshold)
+                                  soft.scores, self.threshold)
         seconds = time.perf_counter() - start
         return Result(track=track, pair_rows=soft.rows, pair_cols=soft.cols, pair_scores=soft.scores,
                       seconds=seconds, method=self.describe())

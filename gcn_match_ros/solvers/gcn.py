@@ -80,21 +80,22 @@ class GCNSolver(Solver):
 
     def __init__(self, config=None, **settings) -> None:
         super().__init__(config, **settings)
-        self._threshold_setting = self.config.threshold
         self._use(os.fspath(self.config.checkpoint or DEFAULT_CHECKPOINT))
 
     def _use(self, path: str) -> None:
-        """Load (cached) the checkpoint at ``path`` and take its rounding threshold unless set."""
+        """Load (cached) the checkpoint at ``path``."""
         # mtime in the cache key: a retrained file at the same path is reloaded.
         mtime = os.path.getmtime(path) if os.path.isfile(path) else 0.0
         self.model, self.meta = _load(path, self.config.device, mtime)
         self.checkpoint_path = path
-        threshold = self._threshold_setting
-        if threshold < 0:
-            # the rounding threshold selected with the model (validation split), if it has one
-            solver_cfg = self.meta["config"].get("solver") or {}
-            threshold = float(solver_cfg.get("threshold", 0.5))
-        self.config = dataclasses.replace(self.config, threshold=threshold)
+
+    @property
+    def threshold(self) -> float:
+        """The threshold setting, else the one selected with the loaded model (its validation
+        split; models/README.md), else 0.5."""
+        if self.config.threshold >= 0:
+            return self.config.threshold
+        return float((self.meta["config"].get("solver") or {}).get("threshold", 0.5))
 
     @property
     def descriptor_kinds(self) -> Tuple[Tuple[int, bool], ...]:
