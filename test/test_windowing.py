@@ -1,3 +1,5 @@
+import zlib
+
 import numpy as np
 import pytest
 
@@ -5,7 +7,8 @@ from gcn_match_ros.windowing import Frame, FrameError, WindowAssembler, WindowCo
 
 
 def frame(cam, stamp, n=5, dim=8, **kw):
-    rng = np.random.default_rng(int(stamp * 1000) + hash(cam) % 100)
+    # deterministic per (camera, stamp); str hash() changes per process and stamps may be < 0
+    rng = np.random.default_rng([zlib.crc32(cam.encode()), int(round(stamp * 1000)) % 2 ** 32])
     return Frame(camera_id=cam, stamp=stamp, keypoints=rng.uniform(0, 100, (n, 2)),
                  descriptors=rng.normal(size=(n, dim)), **kw)
 
