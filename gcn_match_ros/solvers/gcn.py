@@ -37,7 +37,7 @@ class GCNSolverConfig(SolverConfig):
     """Attributes:
         graph: "checkpoint" (the graph the model was trained on) or a preset name.
         checkpoint: path of a checkpoint; "" = the shipped model for the problem's
-            descriptor dimension (:data:`SHIPPED_MODELS`).
+            descriptor kind (:data:`SHIPPED_MODELS`).
         top_k: candidates kept per keypoint and view in the soft output.
         floor: scores at or below it are not listed.
         device: torch device for the forward pass ("cpu", "cuda").
