@@ -137,6 +137,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--recon", choices=["l1", "l2"], default="l1")
     t.add_argument("--epipolar-weight", type=float, default=10.0,
                    help="weight of the epipolar loss on samples with poses (0 disables)")
+    t.add_argument("--edge-weight", type=float, default=1.0,
+                   help="weight of the edge head's pose-based loss, for models with an edge head "
+                        "(the shipped ones; --init gcn_match_ros/models/default.pt fine-tunes it)")
     t.add_argument("--model-config", type=Path, help="JSON of GCNConfig fields")
     t.add_argument("--init", type=Path, help="start from this checkpoint's weights")
     t.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")

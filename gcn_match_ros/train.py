@@ -777,6 +777,8 @@ def run_from_args(args, distributed: bool = False) -> int:
         raise ValueError("--steps and --batch must be >= 1")
     if args.lr <= 0:
         raise ValueError("--lr must be > 0")
+    if args.epipolar_weight < 0 or args.edge_weight < 0:
+        raise ValueError("--epipolar-weight and --edge-weight must be >= 0")
     if args.init is not None and not Path(args.init).is_file():
         raise ValueError(f"--init {args.init}: no such checkpoint file")
 
@@ -816,7 +818,8 @@ def run_from_args(args, distributed: bool = False) -> int:
                          f"{in_dim} (descriptor D={D}); use data with the model's descriptor or --model-config")
     every = max(1, min(500, args.steps // 20))
     cfg = TrainConfig(lr=args.lr, steps=args.steps, batch_size=args.batch, recon_kind=args.recon,
-                      epipolar_weight=args.epipolar_weight, seed=args.seed, val_every=every,
+                      epipolar_weight=args.epipolar_weight, edge_weight=args.edge_weight, seed=args.seed,
+                      val_every=every,
                       checkpoint_every=every, log_every=max(1, min(10, every)), graph=graph_config,
                       features=feature_config)
     world = dist.get_world_size() if distributed else 1
