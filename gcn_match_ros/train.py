@@ -8,8 +8,9 @@ Pieces, smallest first:
 - :class:`Sample` / :func:`make_sample`: a problem with its graph and node
   features, built with the settings the model is trained with.
 - :class:`Batch` / :func:`make_batch`: samples as one block-diagonal graph.
-- :func:`train_step`: forward + loss of one batch (no backward, no optimizer), so
-  a ``DistributedDataParallel``-wrapped model can be passed unchanged.
+- :func:`train_step`: forward + loss of one batch (no backward, no optimizer);
+  :class:`TrainingObjective` is the same as a module, what distributed training wraps in
+  ``DistributedDataParallel``.
 - :func:`train`: the loop (Adam, exponential decay, validation, atomic
   checkpoints ``checkpoint.pt`` / ``best.pt``, ``history.json``, ``resume``).
 
@@ -41,6 +42,7 @@ from .problem import Problem, atomic_write, load_problem
 
 __all__ = ["TrainConfig", "DataSource", "ProblemFileSource", "SyntheticSource", "ShardedSource",
            "InterleavedSource", "BagSource", "Sample", "make_sample", "Batch", "make_batch", "train_step",
+           "TrainingObjective",
            "evaluate", "train", "data_source", "run_from_args"]
 
 
@@ -332,6 +334,23 @@ def make_batch(samples: Sequence[Sample]) -> Batch:
 # ---------------------------------------------------------------------------
 # Step function
 # ---------------------------------------------------------------------------
+class TrainingObjective(torch.nn.Module):
+    """:func:`train_step` of ``model`` as a module's ``forward(batch) -> (loss, logs)``.
+
+    Distributed training wraps this, not the GCN, in ``DistributedDataParallel``: the edge
+    head scores edges from the embeddings outside ``GCN.forward``, and DDP must see every
+    use of a parameter inside the one forward it wraps.
+    """
+
+    def __init__(self, model: torch.nn.Module, config: TrainConfig) -> None:
+        super().__init__()
+        self.model = model
+        self.config = config
+
+    def forward(self, batch: Batch) -> Tuple[Tensor, Dict[str, float]]:
+        return train_step(self.model, batch, self.config)
+
+
 def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tuple[Tensor, Dict[str, float]]:
     """Forward pass and loss of one batch; the caller runs backward and the optimizer.
 
@@ -345,6 +364,8 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
         ``epipolar`` and ``edge`` (means over graphs with poses; NaN if none). The epipolar
         term is logged even at weight 0, so runs with and without it compare on it.
     """
+    if isinstance(getattr(model, "module", model), TrainingObjective):
+        return model(batch)  # (DDP-wrapped) objective: the loss is its forward
     E_all = model(batch.x, batch.edge_index, batch.edge_weight, batch.node_ptr)
     ptr = batch.node_ptr.tolist()
     total = E_all.new_zeros(())
@@ -531,7 +552,8 @@ def train(model_config: GCNConfig, train_source: DataSource, val_source: Optiona
         from torch.nn.parallel import DistributedDataParallel
 
         # broadcasts rank 0's weights; an optional head (edge_head) is not used by every step
-        net = DistributedDataParallel(model, find_unused_parameters=getattr(model, "edge_head", None) is not None)
+        net = DistributedDataParallel(TrainingObjective(model, cfg),
+                                      find_unused_parameters=getattr(model, "edge_head", None) is not None)
 
     config_dict = {"model": model_config.to_dict(), "graph": dataclasses.asdict(cfg.graph),
                    "features": cfg.features.to_dict(), "train": cfg.to_dict()}

@@ -1,4 +1,5 @@
 """Distributed data-parallel training (gloo on CPU, loopback only): gradients, resume, torchrun CLI."""
+import dataclasses
 import functools
 import json
 import os
@@ -15,13 +16,17 @@ import torch
 from gcn_match_ros import synthetic
 from gcn_match_ros.features import feature_dim
 from gcn_match_ros.model import GCN, GCNConfig, load_checkpoint
-from gcn_match_ros.train import (ShardedSource, SyntheticSource, TrainConfig, make_batch, make_sample, train,
-                                 train_step)
+from gcn_match_ros.edge_features import EDGE_FEATURES
+from gcn_match_ros.train import (ShardedSource, SyntheticSource, TrainConfig, TrainingObjective, make_batch,
+                                 make_sample, train, train_step)
 
 D = 16
 MODEL = GCNConfig(in_dim=feature_dim(D), widths=(16, 16, 16, 16), out_dim=16, groups=4, skip_layers=(2, 4))
 SCENE = synthetic.rome16k(3, n_points=12, descriptor_dim=D, descriptor_noise=1.0)
 B = 2  # graphs per rank
+# with the edge head of the shipped models (it scores edges outside GCN.forward)
+EDGE_MODEL = dataclasses.replace(MODEL, edge_features=len(EDGE_FEATURES), edge_hidden=16, edge_k=4)
+EDGE_TRAIN = TrainConfig(epipolar_weight=1.0, edge_weight=1.0)
 TRAIN = dict(lr=3e-3, checkpoint_every=2, log_every=1, val_every=2, val_size=2, epipolar_weight=1.0,
              progress=False, plot=False)
 REPO = Path(__file__).resolve().parents[1]
@@ -54,6 +59,12 @@ def _worker(rank: int, world: int, port: int, tmp: str) -> None:
         loss, _ = train_step(ddp, make_batch(samples), TrainConfig(epipolar_weight=1.0))
         loss.backward()
         torch.save({k: p.grad.clone() for k, p in model.named_parameters()}, tmp / f"grads{rank}.pt")
+        torch.manual_seed(0)
+        edge_model = GCN(EDGE_MODEL)
+        objective = DistributedDataParallel(TrainingObjective(edge_model, EDGE_TRAIN), find_unused_parameters=True)
+        loss, _ = train_step(objective, make_batch(samples), EDGE_TRAIN)
+        loss.backward()
+        torch.save({k: p.grad.clone() for k, p in edge_model.named_parameters()}, tmp / f"edge_grads{rank}.pt")
         # training: 6 steps at once, and 4 steps + resume to 6
         train(MODEL, src, val, TrainConfig(steps=6, batch_size=1, **TRAIN), tmp / "full", distributed=True)
         train(MODEL, src, val, TrainConfig(steps=4, batch_size=1, **TRAIN), tmp / "split", distributed=True)
@@ -95,6 +106,17 @@ def test_ddp_gradients_and_training_match_single_process(tmp_path):
         got = torch.load(tmp_path / f"grads{rank}.pt")
         for k in ref:
             torch.testing.assert_close(got[k], ref[k], rtol=1e-4, atol=1e-5, msg=f"rank {rank} {k}")
+    torch.manual_seed(0)
+    edge_model = GCN(EDGE_MODEL)
+    loss, logs = train_step(edge_model, make_batch(samples), EDGE_TRAIN)
+    assert np.isfinite(logs["edge"])
+    loss.backward()
+    ref = {k: p.grad for k, p in edge_model.named_parameters()}
+    assert any(k.startswith("edge_head") for k in ref)
+    for rank in (0, 1):
+        got = torch.load(tmp_path / f"edge_grads{rank}.pt")
+        for k in ref:
+            torch.testing.assert_close(got[k], ref[k], rtol=1e-4, atol=1e-5, msg=f"edge model, rank {rank} {k}")
 
     # DDP with batch 1 per rank trains exactly like one process with batch 2
     single = train(MODEL, src, val, TrainConfig(steps=6, batch_size=2, **TRAIN), tmp_path / "single")
