@@ -398,17 +398,18 @@ class MatcherNode(Node):
             self.get_logger().warning(f"dropped a frame of {camera}: {exc} ({exc.reason})",
                                       throttle_duration_sec=_THROTTLE_S)
             return
+        if self._solver_kinds and frame.count > 0:  # fixed at start-up: checked outside the lock
+            kind = descriptor_kind(frame.descriptors)
+            if kind not in self._solver_kinds:
+                with self._lock:
+                    self._stats.conversion_drops["descriptor_kind"] += 1
+                self.get_logger().warning(
+                    f"dropped a frame of {camera}: {kind[0]}-D {'binary' if kind[1] else 'real-valued'} "
+                    f"descriptors, which solver {self._method} has no model for (descriptor_kind)",
+                    throttle_duration_sec=_THROTTLE_S)
+                return
         with self._lock:
             cfg = self._assembler.config
-            if self._solver_kinds and frame.count > 0:
-                kind = descriptor_kind(frame.descriptors)
-                if kind not in self._solver_kinds:
-                    self._stats.conversion_drops["descriptor_kind"] += 1
-                    self.get_logger().warning(
-                        f"dropped a frame of {camera}: {kind[0]}-D {'binary' if kind[1] else 'real-valued'} "
-                        f"descriptors, which solver {self._method} has no model for (descriptor_kind)",
-                        throttle_duration_sec=_THROTTLE_S)
-                    return
             if self._auto_dim and cfg.descriptor_dim == 0 and frame.count > 0:
                 cfg = dataclasses.replace(cfg, descriptor_dim=int(frame.descriptors.shape[1]))
                 self._assembler.config = cfg
