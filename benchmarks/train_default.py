@@ -35,16 +35,14 @@ from gcn_match_ros import synthetic  # noqa: E402
 from gcn_match_ros.train import InterleavedSource, ProblemFileSource, SyntheticSource, TrainConfig, train  # noqa: E402
 
 TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
-DESCRIPTOR_DIMS = {"sift": 128, "orb": 256}  # ORB: 32 bytes unpacked to 256 bits
+# descriptor kind (dimension, binary) of each detector's problems: the SHIPPED_MODELS key
+DETECTOR_KINDS = {"sift": (128, False), "orb": (256, True)}  # ORB: 32 bytes unpacked to 256 bits
 SPLIT_AT = 6  # Strecha windows with every image < SPLIT_AT train, every image >= SPLIT_AT validate
-
-
-SYNTHETIC_PRESETS = ("rome16k", "partial", "easy")
 
 
 def synthetic_scene(presets, rng):
     """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views."""
-    preset = getattr(synthetic, presets[int(rng.integers(len(presets)))])
+    preset = synthetic.PRESETS[presets[int(rng.integers(len(presets)))]]
     return synthetic.random_scene_problem(preset(int(rng.integers(3, 5))), rng)
 
 
@@ -98,8 +96,8 @@ def main(argv=None):
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
     widths = tuple(int(w) for w in args.widths.split(","))
     fc = FeatureConfig()
-    descriptor_dim = DESCRIPTOR_DIMS[args.detector]
-    mc = GCNConfig(in_dim=feature_dim(descriptor_dim, fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
+    kind = DETECTOR_KINDS[args.detector]
+    mc = GCNConfig(in_dim=feature_dim(kind[0], fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
                    edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=64, edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
                      epipolar_weight=args.epipolar_weight,
@@ -110,9 +108,9 @@ def main(argv=None):
         if args.detector != "sift":
             raise SystemExit("--synthetic: the generated scenes have SIFT-like descriptors; use --detector sift")
         presets = tuple(args.synthetic.split(","))
-        unknown = [p for p in presets if p not in SYNTHETIC_PRESETS]
+        unknown = [p for p in presets if p not in synthetic.PRESETS]
         if unknown:
-            raise SystemExit(f"--synthetic: unknown presets {unknown}; choose from {SYNTHETIC_PRESETS}")
+            raise SystemExit(f"--synthetic: unknown presets {unknown}; choose from {tuple(synthetic.PRESETS)}")
         source = InterleavedSource([source, SyntheticSource(functools.partial(synthetic_scene, presets), seed=0)])
     train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
@@ -121,7 +119,7 @@ def main(argv=None):
         from gcn_match_ros.model import load_checkpoint, save_checkpoint
         model, meta = load_checkpoint(best)
         config = dict(meta["config"], solver={"threshold": args.threshold})
-        target = SHIPPED_MODELS[(descriptor_dim, args.detector == "orb")]
+        target = SHIPPED_MODELS[kind]
         save_checkpoint(target, model, config, {"step": int(meta["extra"].get("step", 0))})
         print("installed", target)
 

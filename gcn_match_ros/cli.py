@@ -45,10 +45,9 @@ def _expand(patterns: Sequence[str]) -> List[Path]:
 def _cmd_synth(args) -> int:
     from . import synthetic
 
-    presets = {"rome16k": synthetic.rome16k, "partial": synthetic.partial, "easy": synthetic.easy}
-    if args.preset not in presets:
-        raise _UserError(f"unknown preset '{args.preset}'; choose one of {', '.join(presets)}")
-    config = presets[args.preset](args.views)
+    if args.preset not in synthetic.PRESETS:
+        raise _UserError(f"unknown preset '{args.preset}'; choose one of {', '.join(synthetic.PRESETS)}")
+    config = synthetic.PRESETS[args.preset](args.views)
     paths = synthetic.write_problems(args.out, lambda rng: synthetic.random_scene_problem(config, rng),
                                      count=args.count, seed=args.seed, prefix=args.prefix)
     print(f"wrote {len(paths)} problems to {args.out}")

@@ -58,7 +58,7 @@ from .problem import Problem, save_problem
 
 __all__ = [
     "permutation_noise_problem", "PAPER_SYNTHETIC_ROWS",
-    "SceneConfig", "random_scene_problem", "rome16k", "partial", "easy",
+    "SceneConfig", "random_scene_problem", "rome16k", "partial", "easy", "PRESETS",
     "sift_normalize", "write_problems", "mutual_nn_prf", "graph_outlier_rate",
     "DEFAULT_DESCRIPTOR_NOISE",
 ]
@@ -250,6 +250,10 @@ def easy(n_views: int = 3, **changes) -> SceneConfig:
     """Low descriptor (σ = 1.0) and pixel noise, everything visible: mutual NN F1 ≈ 0.99."""
     return SceneConfig(n_views=n_views, n_points=80, visibility=1.0, distractor_fraction=0.0,
                        descriptor_kind="sift", descriptor_noise=1.0, pixel_noise=0.5).replace(**changes)
+
+
+#: The scene presets by name (``gcn-match synth --preset``, ``synth:PRESET`` data specs).
+PRESETS = {"rome16k": rome16k, "partial": partial, "easy": easy}
 
 
 def _look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray, roll: float) -> np.ndarray:

@@ -664,7 +664,7 @@ def _synthetic_source(spec: str, seed: int) -> SyntheticSource:
     from . import synthetic
 
     parts = spec.split(":")
-    presets = {"rome16k": synthetic.rome16k, "partial": synthetic.partial, "easy": synthetic.easy}
+    presets = synthetic.PRESETS
     if len(parts) not in (2, 3) or parts[1] not in presets:
         raise ValueError(f"bad data spec '{spec}': use synth:PRESET[:VIEWS] with PRESET one of {', '.join(presets)}")
     try:
