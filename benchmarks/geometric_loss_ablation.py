@@ -105,12 +105,11 @@ def main(argv=None):
     train_all(runs_dir, data, args.steps, args.jobs)
 
     names = windows(sorted(f.stem for f in data.glob("*.npz") if not f.stem.startswith("middlebury")), False)
-    probs = [load_problem(data / f"{n}.npz") for n in names]
+    test = [load_problem(data / f"{n}.npz") for n in names if role(n) == "test"]
     val = [load_problem(f) for f in split(sorted(data.glob("*.npz")))[1]]  # the trainer's 8 windows
     # generated scenes never trained on (training streams use seeds [0, k])
     synth = [synthetic.random_scene_problem(preset(3 + i % 2), np.random.default_rng([7, i]), name=f"{preset.__name__}{i}")
              for i in range(6) for preset in (synthetic.rome16k, synthetic.partial)]
-    test = [p for p in probs if role(p.name) == "test"]
     rows, pr_specs, train_seconds = [], {}, {}
     for name in RUNS:
         ckpt = runs_dir / name / "checkpoint.pt"
