@@ -6,7 +6,8 @@ Data (all made here with datasets.convert, SIFT or ORB 500, windows of 3, 4 and 
 - validation: fountain-P11 / entry-P10 windows whose images are all >= 6 (the trainer's
   validation loss; their gt labels are used only to compare checkpoints / thresholds by F1);
 - never touched: Strecha castle-P19 and all Oxford scenes (held-out test);
-- optionally (--synthetic, as default.pt) generated scenes mixed 1:1 into the training stream.
+- optionally (--synthetic) generated scenes mixed 1:1 into the training stream, with SIFT-like
+  or ORB-like binary descriptors to match --detector.
 Loss: the project's trainer (train.train) with the paper's L1 reconstruction + epipolar loss on
 the embeddings and the edge head's label-free loss (TrainConfig.edge_weight; edge_head.py).
 """
@@ -37,13 +38,16 @@ from gcn_match_ros.train import InterleavedSource, ProblemFileSource, SyntheticS
 TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
 # descriptor kind (dimension, binary) of each detector's problems: the SHIPPED_MODELS key
 DETECTOR_KINDS = {"sift": (128, False), "orb": (256, True)}  # ORB: 32 bytes unpacked to 256 bits
+# the generated scenes' descriptors standing in for each detector's (synthetic.SceneConfig)
+SYNTHETIC_DESCRIPTORS = {"sift": "sift", "orb": "binary"}
 SPLIT_AT = 6  # Strecha windows with every image < SPLIT_AT train, every image >= SPLIT_AT validate
 
 
-def synthetic_scene(presets, rng):
-    """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views."""
+def synthetic_scene(presets, descriptor_kind, rng):
+    """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views,
+    with descriptors of ``descriptor_kind``."""
     preset = synthetic.PRESETS[presets[int(rng.integers(len(presets)))]]
-    return synthetic.random_scene_problem(preset(int(rng.integers(3, 5))), rng)
+    return synthetic.random_scene_problem(preset(int(rng.integers(3, 5)), descriptor_kind=descriptor_kind), rng)
 
 
 def images_of(name: str):
@@ -79,7 +83,8 @@ def main(argv=None):
     ap.add_argument("--epipolar-weight", type=float, default=10.0, help="epipolar loss weight on the embeddings")
     ap.add_argument("--synthetic", default="",
                     help="mix generated scenes 1:1 into the training stream: comma-separated synthetic presets "
-                         "(rome16k, partial, easy), 3 or 4 views each (SIFT only)")
+                         "(rome16k, partial, easy), 3 or 4 views each, with SIFT-like or (--detector orb) "
+                         "ORB-like binary descriptors")
     ap.add_argument("--widths", default="32,32,64,64,64,64")
     ap.add_argument("--install", action="store_true",
                     help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
@@ -105,13 +110,12 @@ def main(argv=None):
                      graph=GraphConfig(k=4), features=fc, progress=False, plot=False, seed=0)
     source = ProblemFileSource(train_f, seed=0)
     if args.synthetic:
-        if args.detector != "sift":
-            raise SystemExit("--synthetic: the generated scenes have SIFT-like descriptors; use --detector sift")
         presets = tuple(args.synthetic.split(","))
         unknown = [p for p in presets if p not in synthetic.PRESETS]
         if unknown:
             raise SystemExit(f"--synthetic: unknown presets {unknown}; choose from {tuple(synthetic.PRESETS)}")
-        source = InterleavedSource([source, SyntheticSource(functools.partial(synthetic_scene, presets), seed=0)])
+        source = InterleavedSource([source, SyntheticSource(
+            functools.partial(synthetic_scene, presets, SYNTHETIC_DESCRIPTORS[args.detector]), seed=0)])
     train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
     if args.install:

@@ -31,7 +31,9 @@ rome16k(3)                 0.920  0.653  0.764  1.52 (sift default)
 rome16k(4)                 0.918  0.650  0.761  1.52
 rome16k(3, layout=forward) 0.920  0.652  0.763  1.52
 rome16k(3, gaussian)       0.905  0.660  0.763  1.65 (gaussian default)
+rome16k(3, binary)         0.905  0.660  0.763  flip 0.28 (binary default; Hamming)
 partial(3)                 0.623  0.880  0.730  1.2 (70% visibility, 50% distractors)
+partial(3, binary)         0.599  0.924  0.727  flip 0.24
 partial(4)                 0.609  0.887  0.722  1.2
 easy(3)                    1.000  0.982  0.991  1.0
 =========================  =====  =====  =====  =====================================
@@ -95,16 +97,22 @@ def _l2_normalize(desc: np.ndarray) -> np.ndarray:
 # 'gaussian'. Observation noise is expressed in these units.
 _SIFT_SHAPE = 0.5
 _RAW_STD = {"sift": math.sqrt(_SIFT_SHAPE), "gaussian": 1.0}
+DESCRIPTOR_KINDS = ("sift", "gaussian", "binary")
+BINARY_FLIP = 0.28
 
 #: Descriptor noise σ (in units of the raw point-descriptor std) of the ``rome16k``
 #: preset, calibrated so that plain mutual nearest neighbours score F1 ≈ 0.76
 #: (3–4 views, p = 80), like the σ = 1.6 setting of shared/notes/evaluation.md
 #: (its scale differs from ours; only the resulting difficulty was matched).
-DEFAULT_DESCRIPTOR_NOISE = {"sift": 1.52, "gaussian": 1.65}
+#: For 'binary' the noise is the probability that an observation flips a bit of its
+#: point's code, calibrated the same way (mutual NN by Hamming distance F1 ≈ 0.76).
+DEFAULT_DESCRIPTOR_NOISE = {"sift": 1.52, "gaussian": 1.65, "binary": BINARY_FLIP}
 
 
 def _point_descriptors(kind: str, n: int, dim: int, rng: np.random.Generator) -> np.ndarray:
     """Raw (un-normalised) descriptors of ``n`` scene points. Shapes: -> (n, dim) float64."""
+    if kind == "binary":
+        return (rng.random((n, dim)) < 0.5).astype(np.float64)
     if kind == "sift":
         return rng.gamma(_SIFT_SHAPE, 1.0, size=(n, dim))
     return rng.standard_normal((n, dim))
@@ -115,8 +123,11 @@ def _observe_descriptors(kind: str, raw: np.ndarray, sigma: float, rng: np.rando
 
     'sift': add N(0, (σ·std)²), rectify at 0 (histograms are non-negative), SIFT-normalise.
     'gaussian': add N(0, (σ·std)²), L2-normalise.
+    'binary': flip each bit with probability σ (0/1 floats, like ORB's unpacked bits).
     Shapes: raw (n, D) -> (n, D) float32.
     """
+    if kind == "binary":
+        return np.logical_xor(raw > 0.5, rng.random(raw.shape) < sigma).astype(np.float32)
     noisy = raw + sigma * _RAW_STD[kind] * rng.standard_normal(raw.shape)
     if kind == "sift":
         noisy = np.maximum(noisy, 0.0)
@@ -157,10 +168,12 @@ class SceneConfig:
         distractor_fraction: fraction of each view's keypoints that image no scene point
             (uniform location, their own random descriptor; gt_track -1). Must be < 1.
         descriptor_kind: "sift" (non-negative, sparse-ish, L2-normalised, clipped at 0.2 and
-            renormalised) or "gaussian" (L2-normalised Gaussian).
-        descriptor_dim: 128 for SIFT-like descriptors.
+            renormalised), "gaussian" (L2-normalised Gaussian) or "binary" (random bits as
+            0/1 floats, like ORB's 256 unpacked bits).
+        descriptor_dim: 128 for SIFT-like descriptors, 256 for ORB-like ones.
         descriptor_noise: per-observation noise σ in units of the point descriptor's
-            per-entry std; None = :data:`DEFAULT_DESCRIPTOR_NOISE` of the kind (calibrated).
+            per-entry std ("binary": the probability of flipping a bit); None =
+            :data:`DEFAULT_DESCRIPTOR_NOISE` of the kind (calibrated).
         scale_median, scale_log_std: log-normal detector scale (pixels) of each point at the
             reference depth; an observation's scale = point scale × reference depth / depth ×
             exp(N(0, scale_view_log_std²)).
@@ -199,8 +212,13 @@ class SceneConfig:
             raise ValueError("SceneConfig: n_views and n_points must be >= 1")
         if self.layout not in ("orbit", "forward"):
             raise ValueError(f"SceneConfig.layout must be 'orbit' or 'forward', got {self.layout!r}")
-        if self.descriptor_kind not in ("sift", "gaussian"):
-            raise ValueError(f"SceneConfig.descriptor_kind must be 'sift' or 'gaussian', got {self.descriptor_kind!r}")
+        if self.descriptor_kind not in DESCRIPTOR_KINDS:
+            raise ValueError(f"SceneConfig.descriptor_kind must be one of {DESCRIPTOR_KINDS}, "
+                             f"got {self.descriptor_kind!r}")
+        if self.descriptor_kind == "binary" and self.descriptor_noise is not None \
+                and not 0.0 <= self.descriptor_noise <= 0.5:
+            raise ValueError(f"SceneConfig.descriptor_noise of binary descriptors is a bit-flip probability "
+                             f"in [0, 0.5], got {self.descriptor_noise}")
         if not 0.0 <= self.visibility <= 1.0:
             raise ValueError(f"SceneConfig.visibility must be in [0, 1], got {self.visibility}")
         if not 0.0 <= self.distractor_fraction < 1.0:
@@ -226,30 +244,41 @@ class SceneConfig:
         return dataclasses.replace(self, **changes)
 
 
-def rome16k(n_views: int = 3, **changes) -> SceneConfig:
+def rome16k(n_views: int = 3, descriptor_kind: str = "sift", **changes) -> SceneConfig:
     """The paper's Rome16K-style setting: 3 or 4 views, p = 80 points seen by every view,
-    no distractors, SIFT-like descriptors at the calibrated noise (mutual-NN F1 ≈ 0.76)."""
+    no distractors, descriptors at the calibrated noise of their kind (mutual-NN F1 ≈ 0.76)."""
     return SceneConfig(n_views=n_views, n_points=80, visibility=1.0, distractor_fraction=0.0,
-                       descriptor_kind="sift").replace(**changes)
+                       descriptor_kind=descriptor_kind, **_descriptor(descriptor_kind)).replace(**changes)
 
 
-def partial(n_views: int = 3, **changes) -> SceneConfig:
+def partial(n_views: int = 3, descriptor_kind: str = "sift", **changes) -> SceneConfig:
     """Partial visibility and clutter: each view sees ~70% of the points (each point in
     ≥ 2 views) and half of every view's keypoints are distractors.
 
-    Descriptor noise σ = 1.2 (not the rome16k 1.52): calibrated so that plain mutual NN
-    scores F1 ≈ 0.72, the figure shared/notes/evaluation.md reports for this setting. Here
-    the errors are false positives (distractors and points the other view does not see
-    always find *some* mutual neighbour): P ≈ 0.62, R ≈ 0.88. With σ = 1.52 F1 drops to ≈ 0.52.
+    Descriptor noise σ = 1.2 (not the rome16k 1.52; binary: flip 0.24, not 0.28): calibrated
+    so that plain mutual NN scores F1 ≈ 0.72, the figure shared/notes/evaluation.md reports
+    for this setting. Here the errors are false positives (distractors and points the other
+    view does not see always find *some* mutual neighbour): P ≈ 0.62, R ≈ 0.88. With
+    σ = 1.52 F1 drops to ≈ 0.52.
     """
     return SceneConfig(n_views=n_views, n_points=80, visibility=0.7, distractor_fraction=0.5,
-                       descriptor_kind="sift", descriptor_noise=1.2).replace(**changes)
+                       descriptor_kind=descriptor_kind,
+                       **_descriptor(descriptor_kind, {"sift": 1.2, "binary": 0.24})).replace(**changes)
 
 
-def easy(n_views: int = 3, **changes) -> SceneConfig:
-    """Low descriptor (σ = 1.0) and pixel noise, everything visible: mutual NN F1 ≈ 0.99."""
+def easy(n_views: int = 3, descriptor_kind: str = "sift", **changes) -> SceneConfig:
+    """Low descriptor (σ = 1.0; binary: flip 0.2) and pixel noise, everything visible:
+    mutual NN F1 ≈ 0.99."""
     return SceneConfig(n_views=n_views, n_points=80, visibility=1.0, distractor_fraction=0.0,
-                       descriptor_kind="sift", descriptor_noise=1.0, pixel_noise=0.5).replace(**changes)
+                       descriptor_kind=descriptor_kind, pixel_noise=0.5,
+                       **_descriptor(descriptor_kind, {"sift": 1.0, "binary": 0.2})).replace(**changes)
+
+
+def _descriptor(kind: str, noise: Optional[dict] = None) -> dict:
+    """SceneConfig fields of a preset's descriptors: the kind's dimension (ORB-like binary
+    codes are 256 bits) and the preset's noise for that kind (None: the calibrated default)."""
+    return {"descriptor_dim": 256 if kind == "binary" else 128,
+            "descriptor_noise": (noise or {}).get(kind)}
 
 
 #: The scene presets by name (``gcn-match synth --preset``, ``synth:PRESET`` data specs).
@@ -551,13 +580,17 @@ def graph_outlier_rate(graph: CorrespondenceGraph, gt_track: np.ndarray, min_wei
 # ---------------------------------------------------------------------------------------
 def mutual_nn_prf(problem: Problem) -> Tuple[float, float, float, int, int, int]:
     """Precision, recall, F1 of plain mutual nearest neighbours (cosine of L2-normalised
-    descriptors) over all view pairs, and the counts (true positives, predicted, true pairs).
+    descriptors; Hamming distance of 0/1 ones) over all view pairs, and the counts (true
+    positives, predicted, true pairs).
 
     A pair of keypoints in different views is true when both gt_track are equal and >= 0;
     keypoints labelled -2 are left out. Needs ``problem.gt_track``.
     """
     gt = problem.gt_track
-    d = _l2_normalize(problem.descriptors)
+    binary = bool(np.all((problem.descriptors == 0) | (problem.descriptors == 1)))
+    # for 0/1 codes a·b - (|a| + |b|) / 2 = -Hamming / 2: the same ranking as Hamming
+    d = np.asarray(problem.descriptors, np.float64) if binary else _l2_normalize(problem.descriptors)
+    half = d.sum(axis=1) / 2 if binary else np.zeros(len(d))
     offs = problem.view_offsets
     tp = pred = true = 0
     for i in range(problem.n_views):
@@ -569,6 +602,7 @@ def mutual_nn_prf(problem: Problem) -> Tuple[float, float, float, int, int, int]
             if gi.size == 0 or gj.size == 0:
                 continue
             s = d[offs[i]:offs[i + 1]][li] @ d[offs[j]:offs[j + 1]][lj].T
+            s -= half[offs[i]:offs[i + 1]][li][:, None] + half[offs[j]:offs[j + 1]][lj][None, :]
             a = s.argmax(axis=1)
             b = s.argmax(axis=0)
             r = np.flatnonzero(b[a] == np.arange(gi.size))
@@ -613,7 +647,9 @@ def _calibration_table(n: int = 200, seeds_from: int = 0) -> None:
     presets = [("rome16k(3)", rome16k(3)), ("rome16k(4)", rome16k(4)), ("partial(3)", partial(3)),
                ("partial(4)", partial(4)), ("easy(3)", easy(3)),
                ("rome16k(3) forward", rome16k(3, layout="forward")),
-               ("rome16k(3) gaussian", rome16k(3, descriptor_kind="gaussian"))]
+               ("rome16k(3) gaussian", rome16k(3, descriptor_kind="gaussian")),
+               ("rome16k(3) binary", rome16k(3, descriptor_kind="binary")),
+               ("partial(3) binary", partial(3, descriptor_kind="binary"))]
     print(f"{'preset':24s} {'P':>6s} {'R':>6s} {'F1':>6s}  ms/problem")
     for label, cfg in presets:
         tp = pred = true = 0

@@ -21,6 +21,7 @@ CONFIGS = {
     "forward": rome16k(4, layout="forward"),
     "gaussian": partial(5, descriptor_kind="gaussian", descriptor_dim=32),
     "singletons": partial(3, min_views=1, visibility=0.4),
+    "binary": partial(3, descriptor_kind="binary"),
 }
 
 
@@ -63,7 +64,10 @@ def test_scene_shapes_and_ranges(name, tmp_path):
     assert np.all(prob.keypoints >= 0) and np.all(prob.keypoints[:, 0] <= w - 1)
     assert np.all(prob.keypoints[:, 1] <= h - 1)
     assert np.all(prob.image_size == [w, h])
-    np.testing.assert_allclose(np.linalg.norm(prob.descriptors, axis=1), 1.0, atol=1e-5)
+    if cfg.descriptor_kind == "binary":
+        assert set(np.unique(prob.descriptors)) <= {0.0, 1.0}
+    else:
+        np.testing.assert_allclose(np.linalg.norm(prob.descriptors, axis=1), 1.0, atol=1e-5)
     if cfg.descriptor_kind == "sift":
         assert prob.descriptors.min() >= 0.0
     assert np.all(prob.scales > 0) and np.all(np.abs(prob.orientations) <= np.pi + 1e-6)
@@ -205,6 +209,24 @@ def test_config_validation():
         SceneConfig(distractor_fraction=1.0)
     with pytest.raises(ValueError):
         SceneConfig(descriptor_kind="orb")
+    with pytest.raises(ValueError, match="bit-flip probability"):
+        SceneConfig(descriptor_kind="binary", descriptor_dim=256, descriptor_noise=1.2)
+
+
+def test_binary_descriptors_are_orb_like_codes():
+    prob = random_scene_problem(rome16k(3, descriptor_kind="binary", distractor_fraction=0.3), 5)
+    d = prob.descriptors
+    assert d.shape[1] == 256 and set(np.unique(d)) == {0.0, 1.0}
+    from gcn_match_ros.features import descriptor_kind
+    assert descriptor_kind(d) == (256, True)  # the gcn solver would pick the ORB model
+    # two observations of a point differ in each bit with probability 2 f (1 - f), f = 0.28;
+    # unrelated codes (distractors) in half of the bits
+    gt, view = prob.gt_track, prob.view_index
+    same = np.array([np.abs(d[a] - d[b]).mean() for a, b in _true_pairs(gt, view)])
+    np.testing.assert_allclose(same.mean(), 2 * 0.28 * 0.72, atol=0.01)
+    lone = np.flatnonzero(gt == -1)
+    a, b = lone[view[lone] == 0], lone[view[lone] == 1]
+    np.testing.assert_allclose(np.abs(d[a][:, None] - d[b][None]).mean(), 0.5, atol=0.01)
 
 
 def test_sift_normalize():
@@ -226,6 +248,8 @@ def test_presets_difficulty_quick():
     assert 0.65 < f1(rome16k(3)) < 0.85
     assert f1(easy(3)) > 0.95
     assert 0.6 < f1(partial(3)) < 0.85
+    assert 0.65 < f1(rome16k(3, descriptor_kind="binary")) < 0.85
+    assert 0.6 < f1(partial(3, descriptor_kind="binary")) < 0.85
 
 
 # --- the paper's permutation protocol ---------------------------------------------------
