@@ -13,7 +13,7 @@ labels are known (``gt_track != -2``); a pair is true when both keypoints have t
 """
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Sequence, Tuple
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from .problem import Problem, Result
 from .rounding import tracks_to_pairs
 
 __all__ = ["score_result", "average_precision", "pr_curve", "scored_pairs", "reference_rows", "count_pairs", "mean_scores",
-           "SCORE_KEYS"]
+           "paired_bootstrap", "SCORE_KEYS"]
 
 SCORE_KEYS = ("P", "R", "F1", "AP", "same_sim", "diff_sim", "L1", "L2", "seconds")
 
@@ -160,3 +160,22 @@ def mean_scores(rows) -> Dict[str, float]:
         if vals.size:
             out[key] = float(np.median(vals) if key == "seconds" else vals.mean())
     return out
+
+
+def paired_bootstrap(a: Sequence[float], b: Sequence[float], resamples: int = 2000, level: float = 0.95,
+                     seed: int = 0) -> Tuple[float, float, float]:
+    """Mean of the paired differences ``a - b`` (one score per problem, two methods) and its
+    percentile bootstrap confidence interval, resampling problems with replacement.
+
+    Returns:
+        (mean difference, lower, upper).
+    """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.ndim != 1 or a.shape != b.shape or not a.size:
+        raise ValueError(f"need two equally long, non-empty score lists, got shapes {a.shape} and {b.shape}")
+    d = a - b
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, d.size, size=(resamples, d.size))].mean(axis=1)
+    tail = (1 - level) / 2 * 100
+    lo, hi = np.percentile(means, [tail, 100 - tail])
+    return float(d.mean()), float(lo), float(hi)

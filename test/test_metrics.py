@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from gcn_match_ros.metrics import average_precision, count_pairs, reference_rows, score_result
+from gcn_match_ros.metrics import average_precision, count_pairs, paired_bootstrap, reference_rows, score_result
 from gcn_match_ros.problem import Problem, Result
 from gcn_match_ros.rounding import greedy_tracks, is_cycle_consistent, relabel_tracks, tracks_to_pairs
 
@@ -82,3 +82,14 @@ def test_relabel_and_pairs():
     np.testing.assert_array_equal(relabel_tracks([7, 7, 3, -1, 5, 5]), [0, 0, -1, -1, 1, 1])
     r, c = tracks_to_pairs(np.array([0, 1, 0, 0, -1]))
     assert sorted(zip(r.tolist(), c.tolist())) == [(0, 2), (0, 3), (2, 3)]
+
+
+def test_paired_bootstrap():
+    a = np.array([0.8, 0.7, 0.9, 0.6])
+    mean, lo, hi = paired_bootstrap(a, a - 0.05)
+    np.testing.assert_allclose([mean, lo, hi], 0.05)  # a constant difference has no spread
+    mean, lo, hi = paired_bootstrap([1.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0], resamples=4000)
+    assert mean == 0.0 and -1.0 <= lo < -0.4 and 0.4 < hi <= 1.0
+    assert paired_bootstrap(a, a[::-1], seed=3) == paired_bootstrap(a, a[::-1], seed=3)
+    with pytest.raises(ValueError, match="equally long"):
+        paired_bootstrap(a, a[:3])
