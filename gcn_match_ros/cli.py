@@ -1,6 +1,7 @@
 """``gcn-match``: synthesise problems, match them with any method, score and train.
 
-    gcn-match synth -o DIR [--preset rome16k|partial|easy] [--views 3] [--count 10] [--seed 0]
+    gcn-match synth -o DIR [--preset rome16k|partial|easy] [--views 3] [--descriptor sift|gaussian|binary]
+                    [--count 10] [--seed 0]
     gcn-match match PROBLEM.npz --method gcn -o RESULT.npz
     gcn-match eval PROBLEM.npz... --methods nn,gcn,matchals [--json OUT] [--pr-plot PNG]
     gcn-match train --train DATA... --val DATA... -o RUN_DIR [--steps N] [--resume]
@@ -47,7 +48,10 @@ def _cmd_synth(args) -> int:
 
     if args.preset not in synthetic.PRESETS:
         raise _UserError(f"unknown preset '{args.preset}'; choose one of {', '.join(synthetic.PRESETS)}")
-    config = synthetic.PRESETS[args.preset](args.views)
+    if args.descriptor not in synthetic.DESCRIPTOR_KINDS:
+        raise _UserError(f"unknown descriptor '{args.descriptor}'; choose one of "
+                         f"{', '.join(synthetic.DESCRIPTOR_KINDS)}")
+    config = synthetic.PRESETS[args.preset](args.views, descriptor_kind=args.descriptor)
     paths = synthetic.write_problems(args.out, lambda rng: synthetic.random_scene_problem(config, rng),
                                      count=args.count, seed=args.seed, prefix=args.prefix)
     print(f"wrote {len(paths)} problems to {args.out}")
@@ -104,6 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--out", required=True, type=Path)
     s.add_argument("--preset", default="rome16k", help="rome16k | partial | easy")
     s.add_argument("--views", type=int, default=3)
+    s.add_argument("--descriptor", default="sift",
+                   help="sift (SIFT-like, 128-D) | gaussian | binary (ORB-like 256-bit codes)")
     s.add_argument("--count", type=int, default=10)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--prefix", default="synth")
@@ -127,7 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train the GCN (unsupervised + optional epipolar loss)")
     t.add_argument("--train", nargs="+", required=True,
                    help="training data: problem files/globs, bag files (.mcap/.db3 or bag folders), "
-                        "or synth:PRESET[:VIEWS] for generated scenes")
+                        "or synth:PRESET[:VIEWS[:DESCRIPTOR]] for generated scenes (DESCRIPTOR: sift, "
+                        "gaussian, binary)")
     t.add_argument("--val", nargs="+", default=[], help="validation data, same forms as --train")
     t.add_argument("-o", "--out", required=True, type=Path, help="run directory (checkpoints, history, plots)")
     t.add_argument("--steps", type=int, default=2000)

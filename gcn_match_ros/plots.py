@@ -342,7 +342,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("-o", "--out", required=True, type=Path, help="curves PNG")
     p.add_argument("--labels", nargs="+", help="legend names, one per run")
     p.add_argument("--data", nargs="+", help="labelled problems for --pr/--similarity/--histograms "
-                                             "(problem files, bags, synth:PRESET[:VIEWS])")
+                                             "(problem files, bags, synth:PRESET[:VIEWS[:DESCRIPTOR]])")
     p.add_argument("--count", type=int, default=16, help="problems taken from --data")
     p.add_argument("--pr", type=Path, help="precision-recall PNG of the runs' best.pt (+ mutual NN)")
     p.add_argument("--similarity", type=Path, help="similarity-matrix PNG (first run, first problem)")

@@ -665,17 +665,22 @@ def _synthetic_source(spec: str, seed: int) -> SyntheticSource:
 
     parts = spec.split(":")
     presets = synthetic.PRESETS
-    if len(parts) not in (2, 3) or parts[1] not in presets:
-        raise ValueError(f"bad data spec '{spec}': use synth:PRESET[:VIEWS] with PRESET one of {', '.join(presets)}")
+    usage = (f"use synth:PRESET[:VIEWS[:DESCRIPTOR]] with PRESET one of {', '.join(presets)} and DESCRIPTOR "
+             f"one of {', '.join(synthetic.DESCRIPTOR_KINDS)}")
+    if len(parts) not in (2, 3, 4) or parts[1] not in presets:
+        raise ValueError(f"bad data spec '{spec}': {usage}")
     try:
-        views = int(parts[2]) if len(parts) == 3 else 3
+        views = int(parts[2]) if len(parts) >= 3 else 3
     except ValueError:
         views = 0
     if views < 2:
         raise ValueError(f"bad data spec '{spec}': VIEWS must be an integer >= 2")
-    config = presets[parts[1]](views)
+    kind = parts[3] if len(parts) == 4 else "sift"
+    if kind not in synthetic.DESCRIPTOR_KINDS:
+        raise ValueError(f"bad data spec '{spec}': {usage}")
+    config = presets[parts[1]](views, descriptor_kind=kind)
     source = SyntheticSource(functools.partial(synthetic.random_scene_problem, config), seed=seed)
-    source.description = f"synthetic {parts[1]} scenes, {views} views"  # type: ignore[attr-defined]
+    source.description = f"synthetic {parts[1]} scenes, {views} views, {kind} descriptors"  # type: ignore[attr-defined]
     return source
 
 
@@ -712,7 +717,7 @@ def _expand_specs(specs: Sequence[str]) -> Tuple[List[Path], List[Path], List[st
                 npz.append(h)
             else:
                 raise ValueError(f"{h}: not a problem file (.npz), a bag (.mcap, .db3, rosbag2 folder) "
-                                 f"or synth:PRESET[:VIEWS]")
+                                 f"or synth:PRESET[:VIEWS[:DESCRIPTOR]]")
     return npz, bag_paths, synth
 
 
@@ -721,8 +726,8 @@ def data_source(specs: Sequence[str], seed: int = 0, train: bool = True) -> Data
 
     Forms: problem files or globs (``data/*.npz``) or folders of them ->
     :class:`ProblemFileSource`; bags (``.mcap``, ``.db3``, rosbag2 folders, folders of bags)
-    -> :class:`BagSource`; ``synth:PRESET[:VIEWS]`` (``synth:rome16k:4``) ->
-    :class:`SyntheticSource`. Several kinds are taken in turn (:class:`InterleavedSource`).
+    -> :class:`BagSource`; ``synth:PRESET[:VIEWS[:DESCRIPTOR]]`` (``synth:rome16k:4``,
+    ``synth:partial:3:binary`` for ORB-like codes) -> :class:`SyntheticSource`. Several kinds are taken in turn (:class:`InterleavedSource`).
     ``train=False`` (validation): one pass, no repetition, and synthetic scenes from a
     seed range training never uses. The result has a ``description`` attribute.
 

@@ -153,11 +153,28 @@ def test_gcn_match_train_end_to_end_synth(tmp_path, capsys):
     assert [h["step"] for h in json.loads((run / "history.json").read_text())["train"]] == [1, 2, 3, 4]
 
 
+def test_orb_like_generated_scenes_from_cli_and_data_specs(tmp_path, capsys):
+    from gcn_match_ros.features import descriptor_kind
+    from gcn_match_ros.problem import load_problem
+
+    assert cli.main(["synth", "-o", str(tmp_path), "--preset", "partial", "--descriptor", "binary",
+                     "--count", "2"]) == 0
+    files = sorted(tmp_path.glob("*.npz"))
+    assert len(files) == 2 and all(descriptor_kind(load_problem(f).descriptors) == (256, True) for f in files)
+    assert cli.main(["synth", "-o", str(tmp_path), "--descriptor", "orb"]) == 2
+    assert "unknown descriptor 'orb'" in capsys.readouterr().err
+    src = data_source(["synth:rome16k:4:binary"], train=False)
+    problem = next(src())
+    assert descriptor_kind(problem.descriptors) == (256, True) and problem.n_views == 4
+    assert "binary descriptors" in src.description
+
+
 def test_gcn_match_train_errors_are_one_line(tmp_path, capsys, tiny_bags):
     train_bag, val_bag, _ = tiny_bags
     cases = [
         (["--train", str(train_bag), "--val", str(train_bag)], "both the training and the validation"),
         (["--train", "synth:nope"], "synth:PRESET"),
+        (["--train", "synth:easy:3:orb"], "DESCRIPTOR one of sift, gaussian, binary"),
         (["--train", str(tmp_path / "missing.mcap")], "no such"),
         (["--train", str(tmp_path / "x.txt")], "no such file"),
         (["--train", str(train_bag), "--init", str(tmp_path / "none.pt")], "no such checkpoint"),
