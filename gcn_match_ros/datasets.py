@@ -65,9 +65,12 @@ windows, while labelling the most true pairs in 6-view windows and within 20% of
 most in 3-view windows (where 0.75–1 px label a few more). A true match outside
 τ is not mislabelled: it becomes ``-2``. Large-scale keypoints, which localise worse,
 are therefore under-represented among the labelled ones. ORB keypoints sit on the pixel
-grid of their pyramid level and repeat less: the same test gives chance counts of up to
-30% of the real ones in 3-view and 40% or more in 6-view windows at any τ, so ORB labels
-on pose scenes are not fit for benchmarking.
+grid of their pyramid level and repeat less: with the benchmark's 500 keypoints per view
+their windows hold 5–20× fewer labelled true pairs than SIFT's (10–230 against 125–1180
+on the Strecha windows), of which the same test estimates 3.4% chance (pooled over 15
+windows; 8% with 1000 keypoints; up to 25% in a single window of 4 labelled pairs):
+``benchmarks/label_chance.py``, ``benchmarks/results/label_chance.md``. ORB scores on
+pose scenes are therefore noisy (few pairs a window), not dominated by chance labels.
 
 Problem names are ``<scene>_<detector>_<views>``, e.g. ``oxford_graf_sift_123`` or
 ``strecha_fountain-P11_sift_4-5-6``: the image numbers of the window, joined without a

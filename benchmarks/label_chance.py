@@ -1,0 +1,87 @@
+"""How many pose-scene ground-truth pairs are chance confirmations (datasets.label_poses).
+
+For each Strecha window and detector, the pairs labelled true between the window's first two
+views are counted twice: with the real window, and with every other view's keypoints replaced
+by those of an unrelated image (Oxford graf img1) under the same poses. In the second case
+no confirmation can be right, so its count estimates how many of the real count are chance.
+Also printed: the labelled true pairs of the whole window (what the benchmark scores).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gcn_match_ros.datasets import _read_gray, extract_features, label_poses, load_scene  # noqa: E402
+from gcn_match_ros.metrics import count_pairs  # noqa: E402
+
+SCENES = ("strecha/fountain-P11", "strecha/entry-P10", "strecha/castle-P19")
+WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
+
+
+def first_pair_tracks(gt: np.ndarray, n0: int, n1: int) -> int:
+    """Pairs labelled true between view 0 (first n0 entries) and view 1 (next n1)."""
+    a, b = gt[:n0], gt[n0:n0 + n1]
+    return len(np.intersect1d(a[a >= 0], b[b >= 0]))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--features", type=int, default=500, help="keypoints per view (the benchmark's 500)")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "label_chance.md"))
+    args = ap.parse_args(argv)
+    root = Path(args.data_root)
+    unrelated = _read_gray(root / "oxford" / "graf" / "img1.png")
+    cmd = "benchmarks/label_chance.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = ["# Chance confirmations in pose-scene labels\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
+             f"Machine: nproc={os.cpu_count()}, {platform.python_version()}  ",
+             f"{args.features} keypoints per view; label_poses at its defaults (0.5 px).\n",
+             "| detector | scene | window | true pairs views 0-1 | of which chance (estimate) | "
+             "true pairs, whole window |", "|---|---|---|---|---|---|"]
+    totals = {}
+    t0 = time.time()
+    for det in ("sift", "orb"):
+        fake = extract_features(unrelated, det, args.features).keypoints
+        for name in SCENES:
+            scene = load_scene(root, name)
+            feats = {}
+            for win in WINDOWS:
+                if max(win) >= scene.n_views:
+                    continue
+                win = list(win)
+                for v in win:
+                    if v not in feats:
+                        feats[v] = extract_features(_read_gray(scene.image_paths[v]), det, args.features).keypoints
+                kps = [feats[v] for v in win]
+                poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
+                n0, n1 = len(kps[0]), len(kps[1])
+                gt = label_poses(kps, **poses)
+                real = first_pair_tracks(gt, n0, n1)
+                chance = first_pair_tracks(label_poses(kps[:2] + [fake] * (len(win) - 2), **poses), n0, n1)
+                view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
+                whole = count_pairs(gt, view)[1]
+                tot = totals.setdefault(det, [0, 0])
+                tot[0] += real
+                tot[1] += chance
+                lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | {real} | {chance} | "
+                             f"{whole} |")
+    lines.append("")
+    for det, (real, chance) in totals.items():
+        lines.append(f"- {det}: {chance} chance of {real} labelled pairs between views 0-1 "
+                     f"({100 * chance / max(real, 1):.1f}%)")
+    lines.append(f"\nWall time {time.time() - t0:.0f} s.")
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
