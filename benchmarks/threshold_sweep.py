@@ -28,7 +28,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gcn_match_ros import synthetic  # noqa: E402
-from gcn_match_ros.datasets import convert  # noqa: E402
 from gcn_match_ros.evaluation import evaluate  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.rounding import tracks_to_pairs  # noqa: E402
@@ -36,7 +35,7 @@ from gcn_match_ros.solvers import get_solver  # noqa: E402
 from gcn_match_ros.train import _SYNTH_VAL_SEED  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from train_default import SYNTHETIC_DESCRIPTORS, TRAIN_SCENES, split  # noqa: E402
+from train_default import SYNTHETIC_DESCRIPTORS, problem_files, split  # noqa: E402
 
 THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 BASELINE = "nn-ransac:guided=True"
@@ -76,11 +75,7 @@ def main(argv=None):
     ap.add_argument("--out", default="", help="default benchmarks/results/threshold_sweep_<detector>.md")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    data = Path(args.data or f"/tmp/real_gcn/train_{args.detector}")
-    if not list(data.glob("*.npz")):
-        convert(Path(args.data_root), data, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(args.detector,),
-                max_features=500)
-    real = [load_problem(f) for f in split(sorted(data.glob("*.npz")))[1]]
+    real = [load_problem(f) for f in split(problem_files(args.data, args.data_root, args.detector))[1]]
     generated = generated_validation(SYNTHETIC_DESCRIPTORS[args.detector], args.generated)
     pinned = f",checkpoint={args.checkpoint}" if args.checkpoint else ""
     specs = [f"gcn:threshold={t}{pinned}" for t in THRESHOLDS]

@@ -55,6 +55,15 @@ def images_of(name: str):
     return [int(x) for x in (tail.split("-") if "-" in tail else list(tail))]
 
 
+def problem_files(data: str, data_root: str, detector: str):
+    """The real problem files of TRAIN_SCENES for ``detector`` in folder ``data`` (default
+    /tmp/real_gcn/train_<detector>), made with datasets.convert if the folder has none."""
+    folder = Path(data or f"/tmp/real_gcn/train_{detector}")
+    if not list(folder.glob("*.npz")):
+        convert(Path(data_root), folder, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(detector,), max_features=500)
+    return sorted(folder.glob("*.npz"))
+
+
 def split(files):
     train_f, val_f = [], []
     for f in files:
@@ -90,14 +99,10 @@ def main(argv=None):
                     help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
     ap.add_argument("--threshold", type=float, default=0.3,
                     help="rounding threshold stored with the model (models/README.md: 0.2 for default.pt, "
-                         "chosen by validation F1; 0.3 for orb.pt)")
+                         "chosen by real validation F1; 0.3 for orb.pt, chosen on generated validation scenes)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    data = Path(args.data or f"/tmp/real_gcn/train_{args.detector}")
-    if not list(data.glob("*.npz")):
-        convert(Path(args.data_root), data, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(args.detector,),
-                max_features=500)
-    train_f, val_f = split(sorted(data.glob("*.npz")))
+    train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
     widths = tuple(int(w) for w in args.widths.split(","))
     fc = FeatureConfig()
