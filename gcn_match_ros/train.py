@@ -364,8 +364,14 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
         ``epipolar`` and ``edge`` (means over graphs with poses; NaN if none). The epipolar
         term is logged even at weight 0, so runs with and without it compare on it.
     """
-    if isinstance(getattr(model, "module", model), TrainingObjective):
+    net = getattr(model, "module", model)  # the GCN inside a DistributedDataParallel wrapper
+    if isinstance(net, TrainingObjective):
         return model(batch)  # (DDP-wrapped) objective: the loss is its forward
+    edge_head = getattr(net, "edge_head", None) if config.edge_weight else None
+    if net is not model and edge_head is not None:
+        raise ValueError("train_step: the model is a wrapped GCN with an edge head, which runs outside "
+                         "GCN.forward and so outside the wrapper; wrap TrainingObjective(model, config) in "
+                         "DistributedDataParallel instead")
     E_all = model(batch.x, batch.edge_index, batch.edge_weight, batch.node_ptr)
     ptr = batch.node_ptr.tolist()
     total = E_all.new_zeros(())
@@ -387,8 +393,7 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
                 loss = loss + config.epipolar_weight * epi
             epi_sum += float(epi.detach())
             n_epi += 1
-        net = model.module if hasattr(model, "module") else model
-        if config.edge_weight and sample.has_poses and getattr(net, "edge_head", None) is not None:
+        if edge_head is not None and sample.has_poses:
             from .edge_head import edge_training_loss  # optional edge-scoring head
             edge = edge_training_loss(net, E, sample.problem)
             loss = loss + config.edge_weight * edge

@@ -69,6 +69,28 @@ def test_sample_batch_and_step():
     assert ev["loss"] == pytest.approx(logs["loss"], rel=1e-4)
 
 
+def test_wrapped_gcn_with_edge_head_is_refused():
+    import dataclasses
+
+    from gcn_match_ros.edge_features import EDGE_FEATURES
+
+    class Wrapper(torch.nn.Module):  # stands in for DistributedDataParallel(GCN)
+        def __init__(self, module):
+            super().__init__()
+            self.module = module
+
+        def forward(self, *args):
+            return self.module(*args)
+
+    batch = make_batch([make_sample(posed_problem(np.random.default_rng(1)))])
+    edge_model = GCN(dataclasses.replace(MODEL, edge_features=len(EDGE_FEATURES), edge_hidden=8, edge_k=4))
+    with pytest.raises(ValueError, match="wrap TrainingObjective"):
+        train_step(Wrapper(edge_model), batch, TrainConfig(edge_weight=1.0))
+    # without the edge term, or without a head, a wrapped GCN is fine
+    assert np.isnan(train_step(Wrapper(edge_model), batch, TrainConfig(edge_weight=0.0))[1]["edge"])
+    assert np.isfinite(train_step(Wrapper(GCN(MODEL)), batch, TrainConfig())[0].item())
+
+
 def test_sources(tmp_path):
     rng = np.random.default_rng(1)
     for i in range(3):
