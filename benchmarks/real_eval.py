@@ -142,8 +142,8 @@ def main(argv=None):
 
 def _margin(rep, problems, subsets):
     """Lines: the first gcn method's F1 lead over the best non-gcn method that solved every
-    problem (by mean F1 over all of them), with a 95% bootstrap interval over windows, for all and each subset;
-    and how many true pairs the labels hold in each subset (few pairs -> wide intervals)."""
+    problem (by mean F1 over all of them), with a 95% bootstrap interval over windows, for all
+    and each subset; and how many true pairs the labels hold in each subset."""
     names = [p.name for p in problems]
     full = {spec: e for spec, e in rep["methods"].items()
             if not e.get("reference") and all(n in e["per_problem"] for n in names)}
