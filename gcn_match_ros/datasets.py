@@ -72,6 +72,16 @@ windows; 8% with 1000 keypoints; up to 25% in a single window of 4 labelled pair
 ``benchmarks/label_chance.py``, ``benchmarks/results/label_chance.md``. ORB scores on
 pose scenes are therefore noisy (few pairs a window), not dominated by chance labels.
 
+Photometric labels for pose scenes (:func:`label_photometric`; measured against these in
+``benchmarks/results/photometric_labels_check.md``, not used by :func:`make_problem` yet):
+each keypoint's depth by plane sweep against its neighbours in the window
+(``plane_sweep.py``: NCC of a fronto-parallel patch, one clear peak), searched over the
+depths of the window's :func:`label_poses` tracks (all ``-2`` with fewer than 5). Then as
+on homography scenes: projections into view b link mutual nearest keypoints closer than
+3 px where the patch also correlates with b at that depth (NCC ≥ 0.7: b sees it); a
+keypoint not lifted, not seen by some view, or 3–10 px from a projection is ``-2``; else
+``-1``.
+
 Problem names are ``<scene>_<detector>_<views>``, e.g. ``oxford_graf_sift_123`` or
 ``strecha_fountain-P11_sift_4-5-6``: the image numbers of the window, joined without a
 separator when all are one digit.
@@ -91,6 +101,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from .plane_sweep import SweepConfig, lift, patch_ncc
+from .plane_sweep import project as plane_project
 from .problem import Problem, save_problem
 
 __all__ = ["DatasetError", "Scene", "Features", "read_oxford", "read_strecha", "read_middlebury",
@@ -98,11 +110,13 @@ __all__ = ["DatasetError", "Scene", "Features", "read_oxford", "read_strecha", "
            "make_problem", "problem_name", "sample_windows", "convert"]
 
 DETECTORS = ("sift", "orb")
+POSE_LABELS = ("geometric", "photometric")
 DEDUP_PX = 1.5
 LINK_PX = 3.0  # homography scenes: a true pair is this close in the target image
 IGNORE_PX = 10.0  # both kinds: closer than this but not linked -> unlabelled
 EPIPOLAR_PX = 0.5  # pose scenes: epipolar tolerance of a pair (module docstring: why 0.5)
 REPROJECT_PX = 0.5  # pose scenes: a confirming keypoint is this close to the reprojection
+PHOTO_SEEN_NCC = 0.7  # photometric labels: a lifted patch correlates this well with a view seeing it
 
 
 class DatasetError(ValueError):
@@ -435,6 +449,26 @@ def _tracks(n: int, view: np.ndarray, rows: np.ndarray, cols: np.ndarray,
     return track
 
 
+def _mutual_links(q_a: np.ndarray, valid: np.ndarray, pts_b: np.ndarray,
+                  link_px: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Links from view a's keypoints, projected into view b at ``q_a`` (n_a, 2) where
+    ``valid``, to b's keypoints ``pts_b`` (n_b, 2): mutual nearest neighbours closer than
+    ``link_px`` in b's pixels.
+
+    Returns:
+        (ia, jb, d_ab): linked indices into a and b, and (n_a,) distance of every
+        projection to its nearest keypoint of b (``inf`` where not valid).
+    """
+    d_ab, j_ab = _nearest(q_a, valid, pts_b)
+    _, i_ba = _nearest(pts_b, np.ones(len(pts_b), bool), q_a[valid])  # back, same pixels
+    back = np.full(len(pts_b), -1)
+    back[i_ba >= 0] = np.flatnonzero(valid)[i_ba[i_ba >= 0]]
+    mutual = (d_ab < link_px) & (j_ab >= 0)
+    mutual[mutual] &= back[j_ab[mutual]] == np.flatnonzero(mutual)
+    ia = np.flatnonzero(mutual)
+    return ia, j_ab[ia], d_ab
+
+
 def label_homography(keypoints: Sequence[np.ndarray], homographies: np.ndarray, image_sizes: np.ndarray,
                      link_px: float = LINK_PX, ignore_px: float = IGNORE_PX) -> np.ndarray:
     """Ground-truth tracks of keypoints on a plane with exact homographies (rules in the
@@ -458,16 +492,9 @@ def label_homography(keypoints: Sequence[np.ndarray], homographies: np.ndarray, 
         # a -> b and b -> a are different tests: each measures in its target's pixels
         H_ab = np.linalg.solve(homographies[b], homographies[a])
         q_a = _project(H_ab, pts[a])
-        in_a = _inside(q_a, image_sizes[b])
-        d_ab, j_ab = _nearest(q_a, in_a, pts[b])  # from a's keypoints to b's, in b's pixels
-        _, i_ba = _nearest(pts[b], np.ones(len(pts[b]), bool), q_a[in_a])  # back, same pixels
-        back = np.full(len(pts[b]), -1)
-        back[i_ba >= 0] = np.flatnonzero(in_a)[i_ba[i_ba >= 0]]
-        mutual = (d_ab < link_px) & (j_ab >= 0)
-        mutual[mutual] &= back[j_ab[mutual]] == np.flatnonzero(mutual)
-        ia = np.flatnonzero(mutual)
+        ia, jb, d_ab = _mutual_links(q_a, _inside(q_a, image_sizes[b]), pts[b], link_px)
         rows.append(offsets[a] + ia)
-        cols.append(offsets[b] + j_ab[ia])
+        cols.append(offsets[b] + jb)
         near[offsets[a]:offsets[a + 1]] |= d_ab < ignore_px
     track = _tracks(n, view, np.concatenate(rows), np.concatenate(cols))
     track[(track == -1) & near] = -2
@@ -598,6 +625,92 @@ def label_poses(keypoints: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray, t
     return track
 
 
+def _window_depth_range(pts: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray,
+                        t: np.ndarray) -> Optional[Tuple[float, float]]:
+    """Depth range to sweep for a pose window: its :func:`label_poses` tracks triangulated
+    (first two members), depths in every camera, [half the 2nd, twice the 98th percentile];
+    None with fewer than 5 tracks."""
+    track = label_poses(pts, K, R, t)
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])])
+    view = np.repeat(np.arange(len(pts)), np.diff(offsets))
+    kp = np.concatenate(pts)
+    ids, counts = np.unique(track[track >= 0], return_counts=True)
+    ids = ids[counts >= 2]  # uniqueness drops can leave a lone member
+    if len(ids) < 5:
+        return None
+    first = np.array([np.flatnonzero(track == i)[:2] for i in ids])  # members in view order
+    calib = [(_homog(kp[m]) @ np.linalg.inv(K[view[m[0]]]).T)[:, :2] for m in first.T]
+    X = np.array([_triangulate(np.c_[R[view[a]], t[view[a]]], np.c_[R[view[b]], t[view[b]]],
+                               calib[0][k:k + 1], calib[1][k:k + 1])[0] for k, (a, b) in enumerate(first)])
+    z = (np.einsum("vij,nj->vni", R, X) + t[:, None])[..., 2].ravel()
+    z = z[np.isfinite(z) & (z > 0)]
+    if len(z) < 5:
+        return None
+    return 0.5 * float(np.percentile(z, 2)), 2.0 * float(np.percentile(z, 98))
+
+
+def _sweep_support(a: int, n_views: int) -> List[int]:
+    """The views a keypoint of window view a is swept against: its neighbours in window order,
+    the two nearest on one side at the ends."""
+    if a == 0:
+        return [1, 2][:n_views - 1]
+    if a == n_views - 1:
+        return [a - 1, a - 2][:n_views - 1]
+    return [a - 1, a + 1]
+
+
+def label_photometric(keypoints: Sequence[np.ndarray], images: Sequence[np.ndarray], K: np.ndarray,
+                      R: np.ndarray, t: np.ndarray, image_sizes: np.ndarray, link_px: float = LINK_PX,
+                      ignore_px: float = IGNORE_PX, seen_ncc: float = PHOTO_SEEN_NCC,
+                      sweep: SweepConfig = SweepConfig(),
+                      z_range: Optional[Tuple[float, float]] = None) -> np.ndarray:
+    """Ground-truth tracks on a pose window from photo-consistency (module docstring).
+
+    Args:
+        keypoints: V >= 3 arrays (n_v, 2) of pixel (x, y).
+        images: V (H, W) float32 grey images of the window's views.
+        K, R: (V, 3, 3); t: (V, 3) world->camera, ``x ~ K (R X + t)``.
+        image_sizes: (V, 2) (width, height).
+        seen_ncc: a lifted keypoint is seen by view b when its patch, at its depth, correlates
+            at least this well with what b shows there.
+        z_range: depths to sweep; default from the window's :func:`label_poses` tracks.
+
+    Returns:
+        (N,) int64 gt_track, N = sum n_v, views one after another; all -2 when the window
+        has too few pose-confirmed tracks to bound the scene's depth.
+    """
+    pts = [np.asarray(k, dtype=np.float64).reshape(-1, 2) for k in keypoints]
+    n_views = len(pts)
+    if n_views < 3:
+        raise ValueError(f"label_photometric needs at least 3 views, got {n_views}")
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])])
+    n = int(offsets[-1])
+    view = np.repeat(np.arange(n_views), np.diff(offsets))
+    z_range = z_range or _window_depth_range(pts, K, R, t)
+    if z_range is None:
+        return np.full(n, -2, dtype=np.int64)
+    lifted = [lift(images, K, R, t, a, pts[a], _sweep_support(a, n_views), z_range, sweep) for a in range(n_views)]
+    near = np.zeros(n, dtype=bool)
+    unknown = np.zeros(n, dtype=bool)  # whether a counterpart exists somewhere is not known
+    rows, cols = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for a, b in itertools.permutations(range(n_views), 2):
+        X, z = lifted[a]
+        q_a = plane_project(K[b], R[b], t[b], X)
+        valid = np.all(np.isfinite(q_a), axis=1) & _inside(q_a, image_sizes[b])
+        seen = np.zeros(len(q_a), dtype=bool)
+        if valid.any():
+            ncc = patch_ncc(images, K, R, t, a, pts[a][valid], z[valid][:, None], b, sweep)[:, 0]
+            seen[valid] = ncc >= seen_ncc  # NaN (flat, leaves the image) is not seen
+        unknown[offsets[a]:offsets[a + 1]] |= ~np.isfinite(z) | (valid & ~seen)
+        ia, jb, d_ab = _mutual_links(q_a, seen, pts[b], link_px)
+        rows.append(offsets[a] + ia)
+        cols.append(offsets[b] + jb)
+        near[offsets[a]:offsets[a + 1]] |= d_ab < ignore_px
+    track = _tracks(n, view, np.concatenate(rows), np.concatenate(cols))
+    track[(track == -1) & (near | unknown)] = -2
+    return track
+
+
 # --------------------------------------------------------------------------------------
 # Problems
 # --------------------------------------------------------------------------------------
@@ -623,16 +736,21 @@ def problem_name(scene: Scene, views: Sequence[int], detector: str) -> str:
 
 
 def make_problem(scene: Scene, views: Sequence[int], detector: str = "sift", max_features: int = 500,
-                 cache: Optional[FeatureCache] = None) -> Problem:
+                 cache: Optional[FeatureCache] = None, pose_labels: str = "geometric") -> Problem:
     """One problem: features of the images ``views`` (indices into the scene) and their
     ground truth; pose scenes also get K, R, t.
 
     Args:
         cache: optional dict reused across calls so each image is extracted once.
+        pose_labels: ground truth of pose scenes: 'geometric' (:func:`label_poses`) or
+            'photometric' (:func:`label_photometric`).
 
     Raises:
-        ValueError: fewer than 2 views (3 for pose scenes), a repeated or out-of-range view.
+        ValueError: fewer than 2 views (3 for pose scenes), a repeated or out-of-range view,
+            an unknown ``pose_labels``.
     """
+    if pose_labels not in POSE_LABELS:
+        raise ValueError(f"pose_labels must be one of {POSE_LABELS}, got {pose_labels!r}")
     views = [int(v) for v in views]
     if len(views) < 2 or len(set(views)) != len(views) or not all(0 <= v < scene.n_views for v in views):
         raise ValueError(f"views must be >= 2 distinct indices in [0, {scene.n_views}), got {views}")
@@ -644,7 +762,11 @@ def make_problem(scene: Scene, views: Sequence[int], detector: str = "sift", max
         gt = label_homography(kps, scene.homographies[views], sizes)
     else:
         poses = dict(K=scene.K[views], R=scene.R[views], t=scene.t[views])
-        gt = label_poses(kps, **poses)
+        if pose_labels == "photometric":
+            images = [_read_gray(scene.image_paths[v]).astype(np.float32) for v in views]
+            gt = label_photometric(kps, images, image_sizes=sizes, **poses)
+        else:
+            gt = label_poses(kps, **poses)
     return Problem(view_offsets=np.concatenate([[0], np.cumsum([len(k) for k in kps])]),
                    keypoints=np.concatenate(kps),
                    descriptors=np.concatenate([f.descriptors for f in feats]),
@@ -668,12 +790,15 @@ def sample_windows(scene: Scene, sizes: Sequence[int] = (3, 4, 6), stride: int =
 
 def convert(data_root: Path, out_dir: Path, scenes: Sequence[str], sizes: Sequence[int] = (3, 4, 6),
             detectors: Sequence[str] = ("sift",), max_features: int = 500, stride: int = 1,
-            progress: bool = True) -> List[Path]:
+            progress: bool = True, pose_labels: str = "geometric",
+            only: Optional[Sequence[str]] = None) -> List[Path]:
     """Write ``<out_dir>/<problem name>.npz`` for every scene × detector × window.
 
     Args:
         scenes: ids under ``data_root`` (:func:`load_scene`), e.g. ``["oxford/graf",
             "strecha/fountain-P11"]``.
+        pose_labels: ground truth of pose scenes (:func:`make_problem`).
+        only: problem names to make (:func:`problem_name`); default all.
 
     Returns:
         The written paths, in scene, detector, window order.
@@ -685,11 +810,12 @@ def convert(data_root: Path, out_dir: Path, scenes: Sequence[str], sizes: Sequen
         if d not in DETECTORS:
             raise ValueError(f"detector must be one of {DETECTORS}, got {d!r}")
     loaded = [load_scene(Path(data_root), s) for s in scenes]  # fail before any work
-    jobs = [(sc, det, win) for sc in loaded for det in detectors for win in sample_windows(sc, sizes, stride)]
+    jobs = [(sc, det, win) for sc in loaded for det in detectors for win in sample_windows(sc, sizes, stride)
+            if only is None or problem_name(sc, win, det) in only]
     cache: FeatureCache = {}
     out: List[Path] = []
     for sc, det, win in tqdm(jobs, desc="problems", unit="problem", disable=not progress):
-        problem = make_problem(sc, win, det, max_features, cache)
+        problem = make_problem(sc, win, det, max_features, cache, pose_labels)
         path = Path(out_dir) / f"{problem.name}.npz"
         save_problem(problem, path)
         out.append(path)

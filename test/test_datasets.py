@@ -411,3 +411,9 @@ def test_make_problem_pose_scene() -> None:
     assert (prob.gt_track >= 0).sum() > 30
     with pytest.raises(ValueError, match="distinct"):
         make_problem(scene, (4, 4, 5))
+    # photometric labels: same features, other ground truth, more of it labelled
+    photo = make_problem(scene, (4, 5, 6), "sift", 300, pose_labels="photometric")
+    np.testing.assert_array_equal(photo.keypoints, prob.keypoints)
+    assert (photo.gt_track != -2).sum() > (prob.gt_track != -2).sum()
+    with pytest.raises(ValueError, match="pose_labels"):
+        make_problem(scene, (4, 5, 6), pose_labels="depth")

@@ -1,0 +1,118 @@
+"""How far photometric pose-scene labels (datasets.label_photometric) can be trusted, against
+the geometric ones (datasets.label_poses) and a chance test.
+
+For Strecha windows and both detectors:
+- coverage: keypoints labelled (gt != -2) and true pairs under each labeller;
+- agreement: of the pairs the geometric labels call true (0.5 px confirmations, ~0.5% / 3%
+  chance for SIFT / ORB, benchmarks/results/label_chance.md), how many the photometric labels
+  call true, false, or leave unlabelled;
+- descriptor distance (ORB): the median Hamming distance (of 256 bits) of the geometric-true
+  pairs the photometric labels call false, against that of the ones they call true and of
+  random pairs (~125): near-random distances mean the geometric label was the wrong one;
+- chance: the window's views after the first two replaced by an unrelated image (Oxford graf
+  img1, its keypoints and pixels) under the same poses and depth range: every photometric
+  pair labelled true between views 0-1 is then wrong.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gcn_match_ros.datasets import (_read_gray, _window_depth_range, extract_features, label_photometric,  # noqa: E402
+                                    label_poses, load_scene)
+from gcn_match_ros.metrics import count_pairs  # noqa: E402
+
+SCENES = ("strecha/castle-P19", "strecha/fountain-P11", "strecha/entry-P10")
+WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
+
+
+def pairs_between(gt, n0, n1):
+    a, b = gt[:n0], gt[n0:n0 + n1]
+    return len(np.intersect1d(a[a >= 0], b[b >= 0]))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--features", type=int, default=500)
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "photometric_labels_check.md"))
+    args = ap.parse_args(argv)
+    root = Path(args.data_root)
+    fake_img = _read_gray(root / "oxford" / "graf" / "img1.png")
+    cmd = "benchmarks/photometric_labels_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    lines = ["# Photometric pose-scene labels against geometric ones\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
+             f"Machine: nproc={os.cpu_count()}, {platform.python_version()}; {args.features} keypoints per view.\n",
+             "| detector | scene | window | labelled kps geo / photo | true pairs geo / photo | geo-true pairs: "
+             "photo true / false / unlabelled | chance pairs 0-1 (photo) |", "|---|---|---|---|---|---|---|"]
+    hamming = {"agree": [], "contradict": []}
+    totals = {}
+    t0 = time.time()
+    for det in ("sift", "orb"):
+        fake_kp = extract_features(fake_img, det, args.features).keypoints.astype(np.float64)
+        for name in SCENES:
+            scene = load_scene(root, name)
+            cache = {}
+            for win in WINDOWS:
+                if max(win) >= scene.n_views:
+                    continue
+                win = list(win)
+                for v in win:
+                    if v not in cache:
+                        img = _read_gray(scene.image_paths[v])
+                        f = extract_features(img, det, args.features)
+                        cache[v] = (f.keypoints.astype(np.float64), img.astype(np.float32), f.descriptors)
+                kps = [cache[v][0] for v in win]
+                desc = np.concatenate([cache[v][2] for v in win])
+                imgs = [cache[v][1] for v in win]
+                poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
+                view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
+                geo = label_poses(kps, **poses)
+                z_range = _window_depth_range(kps, **poses)
+                photo = label_photometric(kps, imgs, image_sizes=scene.image_sizes[win], z_range=z_range, **poses)
+                # geometric true pairs, judged by the photometric labels
+                gt_true = [(i, j) for tr in np.unique(geo[geo >= 0]) for i in np.flatnonzero(geo == tr)
+                           for j in np.flatnonzero(geo == tr) if i < j and view[i] != view[j]]
+                said_true = [photo[i] >= 0 and photo[i] == photo[j] for i, j in gt_true]
+                said_none = [photo[i] == -2 or photo[j] == -2 for i, j in gt_true]
+                agree, unl = sum(said_true), sum(said_none)
+                disagree = len(gt_true) - agree - unl
+                if det == "orb":
+                    for (i, j), yes, none in zip(gt_true, said_true, said_none):
+                        if not none:
+                            hamming["agree" if yes else "contradict"].append(np.abs(desc[i] - desc[j]).sum())
+                n_extra = len(win) - 2
+                fake = label_photometric(kps[:2] + [fake_kp] * n_extra, imgs[:2] + [fake_img.astype(np.float32)] * n_extra,
+                                         image_sizes=np.r_[scene.image_sizes[win[:2]],
+                                                           np.tile([fake_img.shape[1], fake_img.shape[0]], (n_extra, 1))],
+                                         z_range=z_range, **poses) if z_range else np.full(1, -2)
+                chance = pairs_between(fake, len(kps[0]), len(kps[1])) if z_range else 0
+                tot = totals.setdefault(det, np.zeros(6, int))
+                tot += [len(gt_true), agree, disagree, unl, chance, pairs_between(photo, len(kps[0]), len(kps[1]))]
+                lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | "
+                             f"{np.mean(geo != -2):.2f} / {np.mean(photo != -2):.2f} | "
+                             f"{count_pairs(geo, view)[1]} / {count_pairs(photo, view)[1]} | "
+                             f"{agree} / {disagree} / {unl} of {len(gt_true)} | {chance} |")
+                print(lines[-1], flush=True)
+    lines.append("")
+    for det, (n, agree, disagree, unl, chance, real01) in totals.items():
+        lines.append(f"- {det}: of {n} geometric true pairs, photometric labels call {agree} true, {disagree} false, "
+                     f"{unl} unlabelled; chance test {chance} wrong pairs against {real01} real ones between views 0-1")
+    for k, v in hamming.items():
+        lines.append(f"- orb geometric-true pairs the photometric labels call {'true' if k == 'agree' else 'false'}: "
+                     f"median Hamming distance {np.median(v) if v else float('nan'):.0f} of 256 ({len(v)} pairs)")
+    lines.append(f"\nWall time {time.time() - t0:.0f} s.")
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print("\n".join(lines[-6:]))
+
+
+if __name__ == "__main__":
+    main()
