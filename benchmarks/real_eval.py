@@ -78,6 +78,10 @@ def main(argv=None):
     ap.add_argument("--methods", default="", help="comma-separated; default: all solvers + " + ",".join(EXTRA))
     ap.add_argument("--all-windows", action="store_true",
                     help="every window of every scene, not the fixed subsample of windows()")
+    ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")
+    ap.add_argument("--pose-labels", choices=("geometric", "photometric"), default="geometric",
+                    help="ground truth of the Strecha pose scenes (datasets.make_problem); photometric "
+                         "problems are made into <data>/<detector>_photometric")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     methods = args.methods.split(",") if args.methods else available_solvers() + EXTRA
@@ -86,6 +90,7 @@ def main(argv=None):
     out = [f"# Real-scene evaluation\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
            f"Machine: nproc={os.cpu_count()}, CPU: {_cpu()}, torch threads 1, {platform.python_version()}  ",
            "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",
+           f"Pose-scene labels: {args.pose_labels} (datasets.make_problem).  ",
            "Held out of training: ALL Oxford scenes and Strecha castle-P19 (`test`). fountain-P11 / entry-P10 "
            "windows with images < 6 were training data, images >= 6 validation.\n"]
     t0 = time.time()
@@ -97,6 +102,15 @@ def main(argv=None):
         names = sorted(f.stem for f in folder.glob("*.npz") if not f.stem.startswith("middlebury"))
         if not args.all_windows:
             names = windows(names, args.quick)
+        if args.held_out_only:
+            names = [n for n in names if role(n) == "test"]
+        if args.pose_labels == "photometric":
+            folder = Path(args.data) / f"{det}_photometric"
+            folder.mkdir(parents=True, exist_ok=True)
+            missing = [n for n in names if not (folder / f"{n}.npz").exists()]
+            if missing:
+                convert(Path(args.data_root), folder, scenes, sizes=(3, 4, 6), detectors=(det,), max_features=500,
+                        pose_labels="photometric", only=missing)
         probs = [load_problem(folder / f"{n}.npz") for n in names]
         groups = {"held-out test (Oxford + castle-P19)": [p for p in probs if role(p.name) == "test"],
                   "seen scenes (fountain-P11, entry-P10: train/val windows)":
