@@ -33,6 +33,22 @@ def first_pair_tracks(gt: np.ndarray, n0: int, n1: int) -> int:
     return len(np.intersect1d(a[a >= 0], b[b >= 0]))
 
 
+def pose_windows(root: Path, scenes, windows, detector: str, features: int):
+    """(scene id, Scene, window, views) for every window that fits each scene; views: per
+    window view its Features and grey image, each image read and extracted once."""
+    for name in scenes:
+        scene = load_scene(root, name)
+        cache = {}
+        for win in windows:
+            if max(win) >= scene.n_views:
+                continue
+            for v in win:
+                if v not in cache:
+                    image = _read_gray(scene.image_paths[v])
+                    cache[v] = (extract_features(image, detector, features), image)
+            yield name, scene, list(win), [cache[v] for v in win]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
@@ -51,29 +67,20 @@ def main(argv=None):
     t0 = time.time()
     for det in ("sift", "orb"):
         fake = extract_features(unrelated, det, args.features).keypoints
-        for name in SCENES:
-            scene = load_scene(root, name)
-            feats = {}
-            for win in WINDOWS:
-                if max(win) >= scene.n_views:
-                    continue
-                win = list(win)
-                for v in win:
-                    if v not in feats:
-                        feats[v] = extract_features(_read_gray(scene.image_paths[v]), det, args.features).keypoints
-                kps = [feats[v] for v in win]
-                poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
-                n0, n1 = len(kps[0]), len(kps[1])
-                gt = label_poses(kps, **poses)
-                real = first_pair_tracks(gt, n0, n1)
-                chance = first_pair_tracks(label_poses(kps[:2] + [fake] * (len(win) - 2), **poses), n0, n1)
-                view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
-                whole = count_pairs(gt, view)[1]
-                tot = totals.setdefault(det, [0, 0])
-                tot[0] += real
-                tot[1] += chance
-                lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | {real} | {chance} | "
-                             f"{whole} |")
+        for name, scene, win, views in pose_windows(root, SCENES, WINDOWS, det, args.features):
+            kps = [f.keypoints for f, _ in views]
+            poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
+            n0, n1 = len(kps[0]), len(kps[1])
+            gt = label_poses(kps, **poses)
+            real = first_pair_tracks(gt, n0, n1)
+            chance = first_pair_tracks(label_poses(kps[:2] + [fake] * (len(win) - 2), **poses), n0, n1)
+            view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
+            whole = count_pairs(gt, view)[1]
+            tot = totals.setdefault(det, [0, 0])
+            tot[0] += real
+            tot[1] += chance
+            lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | {real} | {chance} | "
+                         f"{whole} |")
     lines.append("")
     for det, (real, chance) in totals.items():
         lines.append(f"- {det}: {chance} chance of {real} labelled pairs between views 0-1 "

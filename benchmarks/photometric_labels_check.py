@@ -28,8 +28,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gcn_match_ros.datasets import (_read_gray, _window_depth_range, extract_features, label_photometric,  # noqa: E402
-                                    label_poses, load_scene)
+                                    label_poses)
 from gcn_match_ros.metrics import count_pairs  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from label_chance import pose_windows  # noqa: E402
 
 SCENES = ("strecha/castle-P19", "strecha/fountain-P11", "strecha/entry-P10")
 WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
@@ -58,50 +61,39 @@ def main(argv=None):
     t0 = time.time()
     for det in ("sift", "orb"):
         fake_kp = extract_features(fake_img, det, args.features).keypoints.astype(np.float64)
-        for name in SCENES:
-            scene = load_scene(root, name)
-            cache = {}
-            for win in WINDOWS:
-                if max(win) >= scene.n_views:
-                    continue
-                win = list(win)
-                for v in win:
-                    if v not in cache:
-                        img = _read_gray(scene.image_paths[v])
-                        f = extract_features(img, det, args.features)
-                        cache[v] = (f.keypoints.astype(np.float64), img.astype(np.float32), f.descriptors)
-                kps = [cache[v][0] for v in win]
-                desc = np.concatenate([cache[v][2] for v in win])
-                imgs = [cache[v][1] for v in win]
-                poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
-                view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
-                geo = label_poses(kps, **poses)
-                z_range = _window_depth_range(kps, **poses)
-                photo = label_photometric(kps, imgs, image_sizes=scene.image_sizes[win], z_range=z_range, **poses)
-                # geometric true pairs, judged by the photometric labels
-                gt_true = [(i, j) for tr in np.unique(geo[geo >= 0]) for i in np.flatnonzero(geo == tr)
-                           for j in np.flatnonzero(geo == tr) if i < j and view[i] != view[j]]
-                said_true = [photo[i] >= 0 and photo[i] == photo[j] for i, j in gt_true]
-                said_none = [photo[i] == -2 or photo[j] == -2 for i, j in gt_true]
-                agree, unl = sum(said_true), sum(said_none)
-                disagree = len(gt_true) - agree - unl
-                if det == "orb":
-                    for (i, j), yes, none in zip(gt_true, said_true, said_none):
-                        if not none:
-                            hamming["agree" if yes else "contradict"].append(np.abs(desc[i] - desc[j]).sum())
-                n_extra = len(win) - 2
-                fake = label_photometric(kps[:2] + [fake_kp] * n_extra, imgs[:2] + [fake_img.astype(np.float32)] * n_extra,
-                                         image_sizes=np.r_[scene.image_sizes[win[:2]],
-                                                           np.tile([fake_img.shape[1], fake_img.shape[0]], (n_extra, 1))],
-                                         z_range=z_range, **poses) if z_range else np.full(1, -2)
-                chance = pairs_between(fake, len(kps[0]), len(kps[1])) if z_range else 0
-                tot = totals.setdefault(det, np.zeros(6, int))
-                tot += [len(gt_true), agree, disagree, unl, chance, pairs_between(photo, len(kps[0]), len(kps[1]))]
-                lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | "
-                             f"{np.mean(geo != -2):.2f} / {np.mean(photo != -2):.2f} | "
-                             f"{count_pairs(geo, view)[1]} / {count_pairs(photo, view)[1]} | "
-                             f"{agree} / {disagree} / {unl} of {len(gt_true)} | {chance} |")
-                print(lines[-1], flush=True)
+        for name, scene, win, views in pose_windows(root, SCENES, WINDOWS, det, args.features):
+            kps = [f.keypoints.astype(np.float64) for f, _ in views]
+            desc = np.concatenate([f.descriptors for f, _ in views])
+            imgs = [image.astype(np.float32) for _, image in views]
+            poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
+            view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
+            geo = label_poses(kps, **poses)
+            z_range = _window_depth_range(kps, **poses)
+            photo = label_photometric(kps, imgs, image_sizes=scene.image_sizes[win], z_range=z_range, **poses)
+            # geometric true pairs, judged by the photometric labels
+            gt_true = [(i, j) for tr in np.unique(geo[geo >= 0]) for i in np.flatnonzero(geo == tr)
+                       for j in np.flatnonzero(geo == tr) if i < j and view[i] != view[j]]
+            said_true = [photo[i] >= 0 and photo[i] == photo[j] for i, j in gt_true]
+            said_none = [photo[i] == -2 or photo[j] == -2 for i, j in gt_true]
+            agree, unl = sum(said_true), sum(said_none)
+            disagree = len(gt_true) - agree - unl
+            if det == "orb":
+                for (i, j), yes, none in zip(gt_true, said_true, said_none):
+                    if not none:
+                        hamming["agree" if yes else "contradict"].append(np.abs(desc[i] - desc[j]).sum())
+            n_extra = len(win) - 2
+            fake = label_photometric(kps[:2] + [fake_kp] * n_extra, imgs[:2] + [fake_img.astype(np.float32)] * n_extra,
+                                     image_sizes=np.r_[scene.image_sizes[win[:2]],
+                                                       np.tile([fake_img.shape[1], fake_img.shape[0]], (n_extra, 1))],
+                                     z_range=z_range, **poses) if z_range else np.full(1, -2)
+            chance = pairs_between(fake, len(kps[0]), len(kps[1])) if z_range else 0
+            tot = totals.setdefault(det, np.zeros(6, int))
+            tot += [len(gt_true), agree, disagree, unl, chance, pairs_between(photo, len(kps[0]), len(kps[1]))]
+            lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | "
+                         f"{np.mean(geo != -2):.2f} / {np.mean(photo != -2):.2f} | "
+                         f"{count_pairs(geo, view)[1]} / {count_pairs(photo, view)[1]} | "
+                         f"{agree} / {disagree} / {unl} of {len(gt_true)} | {chance} |")
+            print(lines[-1], flush=True)
     lines.append("")
     for det, (n, agree, disagree, unl, chance, real01) in totals.items():
         lines.append(f"- {det}: of {n} geometric true pairs, photometric labels call {agree} true, {disagree} false, "
