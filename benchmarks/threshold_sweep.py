@@ -45,9 +45,8 @@ def generated_validation(descriptor_kind: str, count: int):
     """``count`` generated scenes alternating rome16k / partial and 3 / 4 views."""
     out = []
     for i in range(count):
-        preset = synthetic.PRESETS[("rome16k", "partial")[i % 2]]
-        problem = synthetic.random_scene_problem(preset(3 + (i // 2) % 2, descriptor_kind=descriptor_kind),
-                                                 np.random.default_rng([_SYNTH_VAL_SEED, i]))
+        config = synthetic.preset(("rome16k", "partial")[i % 2], 3 + (i // 2) % 2, descriptor_kind)
+        problem = synthetic.random_scene_problem(config, np.random.default_rng([_SYNTH_VAL_SEED, i]))
         problem.name = f"generated-{i:03d}"
         out.append(problem)
     return out

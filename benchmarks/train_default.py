@@ -46,8 +46,8 @@ SPLIT_AT = 6  # Strecha windows with every image < SPLIT_AT train, every image >
 def synthetic_scene(presets, descriptor_kind, rng):
     """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views,
     with descriptors of ``descriptor_kind``."""
-    preset = synthetic.PRESETS[presets[int(rng.integers(len(presets)))]]
-    return synthetic.random_scene_problem(preset(int(rng.integers(3, 5)), descriptor_kind=descriptor_kind), rng)
+    name = presets[int(rng.integers(len(presets)))]
+    return synthetic.random_scene_problem(synthetic.preset(name, int(rng.integers(3, 5)), descriptor_kind), rng)
 
 
 def images_of(name: str):

@@ -46,12 +46,7 @@ def _expand(patterns: Sequence[str]) -> List[Path]:
 def _cmd_synth(args) -> int:
     from . import synthetic
 
-    if args.preset not in synthetic.PRESETS:
-        raise _UserError(f"unknown preset '{args.preset}'; choose one of {', '.join(synthetic.PRESETS)}")
-    if args.descriptor not in synthetic.DESCRIPTOR_KINDS:
-        raise _UserError(f"unknown descriptor '{args.descriptor}'; choose one of "
-                         f"{', '.join(synthetic.DESCRIPTOR_KINDS)}")
-    config = synthetic.PRESETS[args.preset](args.views, descriptor_kind=args.descriptor)
+    config = synthetic.preset(args.preset, args.views, args.descriptor)
     paths = synthetic.write_problems(args.out, lambda rng: synthetic.random_scene_problem(config, rng),
                                      count=args.count, seed=args.seed, prefix=args.prefix)
     print(f"wrote {len(paths)} problems to {args.out}")

@@ -60,7 +60,7 @@ from .problem import Problem, save_problem
 
 __all__ = [
     "permutation_noise_problem", "PAPER_SYNTHETIC_ROWS",
-    "SceneConfig", "random_scene_problem", "rome16k", "partial", "easy", "PRESETS",
+    "SceneConfig", "random_scene_problem", "rome16k", "partial", "easy", "PRESETS", "preset",
     "sift_normalize", "write_problems", "mutual_nn_prf", "graph_outlier_rate",
     "DEFAULT_DESCRIPTOR_NOISE",
 ]
@@ -283,6 +283,16 @@ def _descriptor(kind: str, noise: Optional[dict] = None) -> dict:
 
 #: The scene presets by name (``gcn-match synth --preset``, ``synth:PRESET`` data specs).
 PRESETS = {"rome16k": rome16k, "partial": partial, "easy": easy}
+
+
+def preset(name: str, n_views: int, descriptor_kind: str = "sift") -> SceneConfig:
+    """The scene preset ``name`` (:data:`PRESETS`) with ``n_views`` views and descriptors of
+    ``descriptor_kind``; a ValueError names the choices for an unknown preset or descriptor."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset '{name}'; choose one of {', '.join(PRESETS)}")
+    if descriptor_kind not in DESCRIPTOR_KINDS:
+        raise ValueError(f"unknown descriptor '{descriptor_kind}'; choose one of {', '.join(DESCRIPTOR_KINDS)}")
+    return PRESETS[name](n_views, descriptor_kind=descriptor_kind)
 
 
 def _look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray, roll: float) -> np.ndarray:

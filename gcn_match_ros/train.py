@@ -669,10 +669,9 @@ def _synthetic_source(spec: str, seed: int) -> SyntheticSource:
     from . import synthetic
 
     parts = spec.split(":")
-    presets = synthetic.PRESETS
-    usage = (f"use synth:PRESET[:VIEWS[:DESCRIPTOR]] with PRESET one of {', '.join(presets)} and DESCRIPTOR "
-             f"one of {', '.join(synthetic.DESCRIPTOR_KINDS)}")
-    if len(parts) not in (2, 3, 4) or parts[1] not in presets:
+    usage = (f"use synth:PRESET[:VIEWS[:DESCRIPTOR]] with PRESET one of {', '.join(synthetic.PRESETS)} and "
+             f"DESCRIPTOR one of {', '.join(synthetic.DESCRIPTOR_KINDS)}")
+    if len(parts) not in (2, 3, 4):
         raise ValueError(f"bad data spec '{spec}': {usage}")
     try:
         views = int(parts[2]) if len(parts) >= 3 else 3
@@ -681,9 +680,10 @@ def _synthetic_source(spec: str, seed: int) -> SyntheticSource:
     if views < 2:
         raise ValueError(f"bad data spec '{spec}': VIEWS must be an integer >= 2")
     kind = parts[3] if len(parts) == 4 else "sift"
-    if kind not in synthetic.DESCRIPTOR_KINDS:
-        raise ValueError(f"bad data spec '{spec}': {usage}")
-    config = presets[parts[1]](views, descriptor_kind=kind)
+    try:
+        config = synthetic.preset(parts[1], views, kind)
+    except ValueError as exc:
+        raise ValueError(f"bad data spec '{spec}': {exc}; {usage}") from None
     source = SyntheticSource(functools.partial(synthetic.random_scene_problem, config), seed=seed)
     source.description = f"synthetic {parts[1]} scenes, {views} views, {kind} descriptors"  # type: ignore[attr-defined]
     return source
@@ -732,7 +732,8 @@ def data_source(specs: Sequence[str], seed: int = 0, train: bool = True) -> Data
     Forms: problem files or globs (``data/*.npz``) or folders of them ->
     :class:`ProblemFileSource`; bags (``.mcap``, ``.db3``, rosbag2 folders, folders of bags)
     -> :class:`BagSource`; ``synth:PRESET[:VIEWS[:DESCRIPTOR]]`` (``synth:rome16k:4``,
-    ``synth:partial:3:binary`` for ORB-like codes) -> :class:`SyntheticSource`. Several kinds are taken in turn (:class:`InterleavedSource`).
+    ``synth:partial:3:binary`` for ORB-like codes) -> :class:`SyntheticSource`. Several
+    kinds are taken in turn (:class:`InterleavedSource`).
     ``train=False`` (validation): one pass, no repetition, and synthetic scenes from a
     seed range training never uses. The result has a ``description`` attribute.
 
@@ -851,8 +852,7 @@ def run_from_args(args, distributed: bool = False) -> int:
     every = max(1, min(500, args.steps // 20))
     cfg = TrainConfig(lr=args.lr, steps=args.steps, batch_size=args.batch, recon_kind=args.recon,
                       epipolar_weight=args.epipolar_weight, edge_weight=args.edge_weight, seed=args.seed,
-                      val_every=every,
-                      checkpoint_every=every, log_every=max(1, min(10, every)), graph=graph_config,
+                      val_every=every, checkpoint_every=every, log_every=max(1, min(10, every)), graph=graph_config,
                       features=feature_config)
     world = dist.get_world_size() if distributed else 1
     say(f"train: {train_src.description}")  # type: ignore[attr-defined]
