@@ -23,7 +23,7 @@ from .graph import normalize_descriptors
 from .problem import Problem
 
 __all__ = ["FeatureConfig", "node_features", "feature_dim", "calibrated_points",
-           "normalized_positions", "descriptor_kind"]
+           "normalized_positions", "descriptor_kind", "describe_descriptor_kind"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +70,11 @@ def descriptor_kind(descriptors: np.ndarray) -> Tuple[int, bool]:
     d = np.asarray(descriptors)
     binary = bool(d.size) and bool(np.all((d == 0) | (d == 1)))
     return int(d.shape[1]) if d.ndim == 2 else 0, binary
+
+
+def describe_descriptor_kind(kind: Tuple[int, bool]) -> str:
+    """Words for a :func:`descriptor_kind`: ``'256-bit binary'``, ``'128-D real-valued'``."""
+    return f"{kind[0]}-bit binary" if kind[1] else f"{kind[0]}-D real-valued"
 
 
 def feature_dim(descriptor_dim: int, config: FeatureConfig = FeatureConfig()) -> int:

@@ -49,7 +49,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from .. import solvers as _solvers
-from ..features import descriptor_kind
+from ..features import describe_descriptor_kind, descriptor_kind
 from ..graph import build_graph
 from ..problem import Problem
 from ..solvers import available_solvers, get_solver, parse_method
@@ -404,7 +404,7 @@ class MatcherNode(Node):
                 with self._lock:
                     self._stats.conversion_drops["descriptor_kind"] += 1
                 self.get_logger().warning(
-                    f"dropped a frame of {camera}: {kind[0]}-D {'binary' if kind[1] else 'real-valued'} "
+                    f"dropped a frame of {camera}: {describe_descriptor_kind(kind)} "
                     f"descriptors, which solver {self._method} has no model for (descriptor_kind)",
                     throttle_duration_sec=_THROTTLE_S)
                 return

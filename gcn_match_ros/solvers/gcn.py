@@ -15,7 +15,7 @@ from typing import Optional, Tuple
 
 import torch
 
-from ..features import descriptor_kind, feature_dim
+from ..features import describe_descriptor_kind, descriptor_kind, feature_dim
 from ..graph import CorrespondenceGraph, GraphConfig
 from ..problem import Problem, Result
 from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
@@ -57,10 +57,6 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
-
-
-def _kind_text(kind: Tuple[int, bool]) -> str:
-    return f"{kind[0]}-bit binary" if kind[1] else f"{kind[0]}-D real-valued"
 
 
 @functools.lru_cache(maxsize=4)
@@ -117,9 +113,9 @@ class GCNSolver(Solver):
         kind = descriptor_kind(problem.descriptors)
         path = SHIPPED_MODELS.get(kind)
         if path is None or not path.is_file():
-            have = ", ".join(_kind_text(k) for k in self.descriptor_kinds) or "none"
-            raise ValueError(f"no shipped gcn model takes {_kind_text(kind)} descriptors (shipped: {have}); "
-                             f"train one and pass gcn:checkpoint=PATH")
+            have = ", ".join(describe_descriptor_kind(k) for k in self.descriptor_kinds) or "none"
+            raise ValueError(f"no shipped gcn model takes {describe_descriptor_kind(kind)} descriptors "
+                             f"(shipped: {have}); train one and pass gcn:checkpoint=PATH")
         if os.fspath(path) != self.checkpoint_path:
             self._use(os.fspath(path))
 
