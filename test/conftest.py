@@ -29,6 +29,15 @@ def permuted_views_problem(n_views: int = 3, n_points: int = 12, dim: int = 16, 
                    gt_track=np.concatenate(gt), name="permuted")
 
 
+def look_at(centre: np.ndarray, target: np.ndarray) -> tuple:
+    """World->camera R, t for a camera at ``centre`` looking at ``target`` (y down)."""
+    z = (target - centre) / np.linalg.norm(target - centre)
+    x = np.cross([0.0, 0.0, -1.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Run a module's torch ops on one intra-op thread, restoring the count afterwards."""

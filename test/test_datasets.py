@@ -12,6 +12,8 @@ from gcn_match_ros.datasets import (DatasetError, convert, extract_features, lab
                                     read_strecha, sample_windows)
 from gcn_match_ros.problem import load_problem
 
+from conftest import look_at
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 DATA = SHARED / "data"
 REFERENCE = SHARED / "reference" / "oxford-dev" / "problems"
@@ -115,15 +117,6 @@ def test_make_problem_reproduces_reference_keypoints() -> None:
 # --------------------------------------------------------------------------------------
 # Pose labelling
 # --------------------------------------------------------------------------------------
-def _look_at(centre: np.ndarray, target: np.ndarray) -> tuple:
-    """World->camera R, t for a camera at ``centre`` looking at ``target`` (y down)."""
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross([0.0, 0.0, -1.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
 def _project(K, R, t, X) -> np.ndarray:
     h = (np.atleast_2d(X) @ R.T + t) @ K.T
     return h[:, :2] / h[:, 2:]
@@ -145,7 +138,7 @@ def _epipolar_gaps(K, R, t, a: int, b: int, xa: np.ndarray, xb: np.ndarray) -> n
 def rig():
     """Three cameras 10 m from the origin, 20 deg apart, and 12 points near the origin."""
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    poses = [_look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.5]), np.zeros(3))
+    poses = [look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.5]), np.zeros(3))
              for a in np.radians([-20, 0, 20])]
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
@@ -187,7 +180,7 @@ def test_pose_labels_synthetic(rig) -> None:
 def ring():
     """Five cameras 10 m from the origin, 15 deg apart, and 6 points seen by all."""
     K = np.stack([np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])] * 5)
-    poses = [_look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.5]), np.zeros(3))
+    poses = [look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.5]), np.zeros(3))
              for a in np.radians([-30, -15, 0, 15, 30])]
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
@@ -281,7 +274,7 @@ def _strecha_like(folder: Path, n: int = 3) -> None:
     folder.mkdir(parents=True)
     for v in range(n):
         cv2.imwrite(str(folder / f"{v:04d}.png"), _texture(seed=v))
-        R, t = _look_at(np.array([v, -10.0, 0.0]), np.zeros(3))
+        R, t = look_at(np.array([v, -10.0, 0.0]), np.zeros(3))
         (folder / f"{v:04d}.cam").write_text(
             "# toy\nK 500 0 120 0 500 90 0 0 1\n"
             f"R {' '.join(map(str, R.ravel()))}\nt {' '.join(map(str, t))}\n")

@@ -9,16 +9,10 @@ import pytest
 from gcn_match_ros.datasets import label_photometric
 from gcn_match_ros.plane_sweep import SweepConfig, lift, project
 
+from conftest import look_at
+
 SIZE = (640, 480)
 TEXTURE_M_PER_PX = 0.01
-
-
-def _look_at(centre: np.ndarray, target: np.ndarray) -> tuple:
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross([0.0, 0.0, -1.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +26,7 @@ def plane_views():
     # texture pixel (u, v) -> world (X, 0, Z), texture centre at the origin, v down = Z down
     S = np.array([[s, 0, -s * w / 2], [0, 0, 0], [0, -s, s * h / 2]])
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    poses = [_look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.3]), np.zeros(3))
+    poses = [look_at(np.array([10 * np.sin(a), -10 * np.cos(a), 0.3]), np.zeros(3))
              for a in np.radians([-12, -4, 4, 12])]
     R = np.stack([p[0] for p in poses])
     t = np.stack([p[1] for p in poses])
