@@ -1,6 +1,6 @@
 """All solvers side by side on real scenes (Oxford homography scenes, Strecha pose scenes).
 
-Problems are made with datasets.convert (SIFT / ORB, 500 features, windows of 3, 4 and 6
+Problems are made with datasets.convert (SIFT / ORB, 500 features or --max-features, windows of 3, 4 and 6
 consecutive views) into --data (default /tmp/real_gcn) unless already there. Every method
 runs with its default settings on the same problems in one run (evaluation.evaluate:
 one untimed warm-up, median seconds). Which scenes the shipped model was trained on is
@@ -79,38 +79,42 @@ def main(argv=None):
     ap.add_argument("--all-windows", action="store_true",
                     help="every window of every scene, not the fixed subsample of windows()")
     ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")
+    ap.add_argument("--max-features", type=int, default=500,
+                    help="keypoints per image; problems other than 500 are made into <data>/<detector>_<N>")
     ap.add_argument("--pose-labels", choices=("geometric", "photometric"), default="geometric",
                     help="ground truth of the Strecha pose scenes (datasets.make_problem); photometric "
-                         "problems are made into <data>/<detector>_photometric")
+                         "problems are made into <problem folder>_photometric")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     methods = args.methods.split(",") if args.methods else available_solvers() + EXTRA
     scenes = [f"oxford/{s}" for s in OXFORD] + [f"strecha/{s}" for s in STRECHA]
     cmd = "benchmarks/real_eval.py " + " ".join(argv if argv is not None else sys.argv[1:])
     out = [f"# Real-scene evaluation\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
-           f"Machine: nproc={os.cpu_count()}, CPU: {_cpu()}, torch threads 1, {platform.python_version()}  ",
+           f"Machine: nproc={os.cpu_count()}, CPU: {cpu_name()}, torch threads 1, {platform.python_version()}  ",
            "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",
+           f"Keypoints: {args.max_features} per image. "
            f"Pose-scene labels: {args.pose_labels} (datasets.make_problem).  ",
            "Held out of training: ALL Oxford scenes and Strecha castle-P19 (`test`). fountain-P11 / entry-P10 "
            "windows with images < 6 were training data, images >= 6 validation.\n"]
     t0 = time.time()
     for det in (args.detectors or ("sift" if args.quick else "sift,orb")).split(","):
-        folder = Path(args.data) / det
+        folder = Path(args.data) / (det if args.max_features == 500 else f"{det}_{args.max_features}")
         folder.mkdir(parents=True, exist_ok=True)
         if not list(folder.glob("*.npz")):
-            convert(Path(args.data_root), folder, scenes, sizes=(3, 4, 6), detectors=(det,), max_features=500)
+            convert(Path(args.data_root), folder, scenes, sizes=(3, 4, 6), detectors=(det,),
+                    max_features=args.max_features)
         names = sorted(f.stem for f in folder.glob("*.npz") if not f.stem.startswith("middlebury"))
         if not args.all_windows:
             names = windows(names, args.quick)
         if args.held_out_only:
             names = [n for n in names if role(n) == "test"]
         if args.pose_labels == "photometric":
-            folder = Path(args.data) / f"{det}_photometric"
+            folder = folder.with_name(f"{folder.name}_photometric")
             folder.mkdir(parents=True, exist_ok=True)
             missing = [n for n in names if not (folder / f"{n}.npz").exists()]
             if missing:
-                convert(Path(args.data_root), folder, scenes, sizes=(3, 4, 6), detectors=(det,), max_features=500,
-                        pose_labels="photometric", only=missing)
+                convert(Path(args.data_root), folder, scenes, sizes=(3, 4, 6), detectors=(det,),
+                        max_features=args.max_features, pose_labels="photometric", only=missing)
         probs = [load_problem(folder / f"{n}.npz") for n in names]
         groups = {"held-out test (Oxford + castle-P19)": [p for p in probs if role(p.name) == "test"],
                   "seen scenes (fountain-P11, entry-P10: train/val windows)":
@@ -139,7 +143,7 @@ def main(argv=None):
                         v = [e["per_problem"][n]["F1"] for n in ns if n in e["per_problem"]]
                         cells.append(f"{k} {sum(v) / len(v):.3f}" if v else f"{k} –")
                     out.append(f"- {e['describe']}: " + ", ".join(cells))
-                out.extend(_margin(rep, ps, subsets))
+                out.extend(lead_lines(rep, ps, subsets))
             print("\n".join(out[-4:]), flush=True)
     out.append(f"\nTotal wall time {time.time() - t0:.0f} s.")
     out.append("matchals and pgdds (default settings, ~11 s and ~30 s a problem) ran on the held-out SIFT 3-view "
@@ -154,7 +158,7 @@ def main(argv=None):
     print("wrote", args.out)
 
 
-def _margin(rep, problems, subsets):
+def lead_lines(rep, problems, subsets):
     """Lines: the first gcn method's F1 lead over the best non-gcn method that solved every
     problem (by mean F1 over all of them), with a 95% bootstrap interval over windows, for all
     and each subset; and how many true pairs the labels hold in each subset."""
@@ -182,7 +186,7 @@ def _margin(rep, problems, subsets):
     return lines
 
 
-def _cpu() -> str:
+def cpu_name() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):

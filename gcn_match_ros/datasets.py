@@ -3,7 +3,8 @@
 Three kinds of scene folder are read (``shared/data/README.md``):
 
 - ``oxford/<scene>/``: ``img1.png`` … ``imgN.png`` and ``H1toNp`` homographies
-  (``x_N ~ H1toN x_1``); kind ``'homography'``.
+  (``x_N ~ H1toN x_1``); kind ``'homography'``. ``homography/<scene>/`` is any other
+  sequence in this layout (e.g. made by homography_sequence.py).
 - ``strecha/<scene>/``: ``NNNN.png`` and ``NNNN.cam`` (``K``, ``R``, ``t`` lines,
   world→camera, ``x ~ K (R X + t)``); kind ``'poses'``.
 - ``middlebury_temple/``: ``templeSR00NN.png`` and ``templeSR_par.txt``
@@ -207,8 +208,9 @@ def _number_of(path: Path) -> str:
     return str(int(digits[-1])) if digits else path.stem
 
 
-def read_oxford(folder: Path) -> Scene:
-    """``img1.png`` … ``imgN.png`` with ``H1to2p`` … ``H1toNp`` (``x_N ~ H1toN x_1``).
+def read_oxford(folder: Path, dataset: str = "oxford") -> Scene:
+    """``img1.png`` … ``imgN.png`` with ``H1to2p`` … ``H1toNp`` (``x_N ~ H1toN x_1``); the
+    scene is named ``<dataset>_<folder name>``.
 
     Raises:
         DatasetError: missing images or homography files, or a file that is not a finite,
@@ -232,7 +234,7 @@ def read_oxford(folder: Path) -> Scene:
         if abs(np.linalg.det(H)) < 1e-12:
             raise DatasetError(f"{path}: homography is singular")
         to_view0.append(np.linalg.inv(H))
-    return Scene(name=f"oxford_{folder.name}", kind="homography", image_paths=paths,
+    return Scene(name=f"{dataset}_{folder.name}", kind="homography", image_paths=paths,
                  view_labels=tuple(_number_of(p) for p in paths), image_sizes=_image_sizes(paths),
                  homographies=np.stack(to_view0))
 
@@ -321,28 +323,29 @@ def read_middlebury(folder: Path, par_name: str = "templeSR_par.txt") -> Scene:
 
 
 def load_scene(data_root: Path, scene: str) -> Scene:
-    """A scene by its path under ``data_root``: ``oxford/<name>``, ``strecha/<name>`` or
-    ``middlebury_temple``.
+    """A scene by its path under ``data_root``: ``oxford/<name>``, ``strecha/<name>``,
+    ``middlebury_temple``, or ``homography/<name>`` (any sequence in the Oxford layout, e.g.
+    one made by homography_sequence.py).
 
     Raises:
         DatasetError: unknown dataset or missing folder.
     """
     folder = Path(data_root) / scene
     dataset = Path(scene).parts[0] if Path(scene).parts else ""
-    if dataset == "oxford":
-        return read_oxford(folder)
+    if dataset in ("oxford", "homography"):
+        return read_oxford(folder, dataset)
     if dataset == "strecha":
         return read_strecha(folder)
     if dataset.startswith("middlebury"):
         return read_middlebury(folder)
     raise DatasetError(f"{folder}: unknown dataset {dataset!r} (expected oxford/<scene>, "
-                       "strecha/<scene> or middlebury_temple)")
+                       "strecha/<scene>, middlebury_temple or homography/<scene>)")
 
 
 def available_scenes(data_root: Path) -> List[str]:
     """Scene ids under ``data_root`` accepted by :func:`load_scene`, sorted."""
     root = Path(data_root)
-    ids = [f"{ds}/{p.name}" for ds in ("oxford", "strecha")
+    ids = [f"{ds}/{p.name}" for ds in ("homography", "oxford", "strecha")
            for p in sorted((root / ds).glob("*")) if p.is_dir()]
     ids += [p.name for p in sorted(root.glob("middlebury*")) if p.is_dir()]
     return sorted(ids)
