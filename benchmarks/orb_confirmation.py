@@ -85,6 +85,13 @@ def make_sequences(wheel: Path, data: Path) -> list:
     return scenes
 
 
+def montage(data: Path, scenes: list, path: Path, thumb=(96, 72)) -> None:
+    """A JPEG of every sequence, one row of its views each, to see what was scored."""
+    rows = [np.hstack([cv2.resize(cv2.imread(str(data / s / f"img{k}.png"), cv2.IMREAD_GRAYSCALE), thumb,
+                                  interpolation=cv2.INTER_AREA) for k in range(1, 7)]) for s in scenes]
+    cv2.imwrite(str(path), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 75])
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="/tmp/real_gcn/unseen")
@@ -95,6 +102,8 @@ def main(argv=None):
     torch.set_num_threads(1)
     data = Path(args.data)
     scenes = make_sequences(fetch_wheel(Path(args.cache)), data)
+    pictures = Path(args.out).with_suffix(".jpg")
+    montage(data, scenes, pictures)
     cmd = "benchmarks/orb_confirmation.py " + " ".join(argv if argv is not None else sys.argv[1:])
     out = ["# ORB confirmation, part B: homography sequences from unseen photographs\n",
            f"Command: `.venv/bin/python {cmd.strip()}`  ",
@@ -103,7 +112,7 @@ def main(argv=None):
            f"{len(scenes)} sequences of 6 views from the scikit-image 0.25.2 photographs; 500 keypoints; "
            "windows of 3, 4, 6 consecutive views; labels by exact homography (true < 3 px, false > 10 px). "
            "Methods with default settings; gcn = the shipped model of the descriptor kind at its stored "
-           "threshold.\n"]
+           f"threshold. The sequences, a row each: {pictures.name}.\n"]
     t0 = time.time()
     for det in args.detectors.split(","):
         folder = data / det
