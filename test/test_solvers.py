@@ -116,6 +116,16 @@ def test_exact_recovery_partial_visibility(name):
     assert sc["P"] == 1.0 and sc["R"] == 1.0, (name, sc)
 
 
+@pytest.mark.parametrize("name", SOLVERS)
+def test_a_graph_without_edges_matches_nothing(name):
+    """Views with 0-2 keypoints and no candidate edge (a low-texture window): every keypoint
+    unmatched, no error (matcheig used to index its scores with empty arrays and fail)."""
+    prob = Problem(view_offsets=np.array([0, 1, 1, 3]), keypoints=np.zeros((3, 2)),
+                   descriptors=np.eye(3, 16), gt_track=np.array([-1, -1, -1]), name="sparse")
+    result = get_solver(name).solve(prob, graph_from_pairs(prob, []))
+    np.testing.assert_array_equal(result.track, [-1, -1, -1])
+
+
 @pytest.mark.parametrize("name", ROBUST)
 def test_robust_to_a_few_wrong_edges(name):
     """5% of the true edges dropped and as many wrong ones added: synchronisation repairs them."""

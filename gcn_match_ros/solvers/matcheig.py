@@ -93,6 +93,9 @@ def matcheig_pairs(scores: sp.csr_matrix, view_offsets: np.ndarray, threshold: f
     view = view_index_of(np.asarray(view_offsets, np.int64))
     vr, vc = view[s.row], view[s.col]
     keep = (vr != vc) & (s.data >= threshold)
+    if not keep.any():
+        z = np.zeros(0, np.int64)
+        return z, z.copy(), np.zeros(0)
     r, c, v, vr, vc = s.row[keep], s.col[keep], s.data[keep], vr[keep], vc[keep]
     V = len(view_offsets) - 1
     block = vr * V + vc
@@ -104,9 +107,6 @@ def matcheig_pairs(scores: sp.csr_matrix, view_offsets: np.ndarray, threshold: f
         rr, cc = _greedy_partial_permutation(r[s0:e0], c[s0:e0], v[s0:e0])
         out_r.append(rr)
         out_c.append(cc)
-    if not out_r:
-        z = np.zeros(0, np.int64)
-        return z, z.copy(), np.zeros(0)
     rows, cols = np.concatenate(out_r).astype(np.int64), np.concatenate(out_c).astype(np.int64)
     vals = np.asarray(scores[rows, cols]).ravel()
     return rows, cols, vals
