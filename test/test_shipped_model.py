@@ -105,3 +105,33 @@ def test_threshold_follows_the_model_unless_set():
     fixed = get_solver("gcn:threshold=0.45")
     fixed._use(str(SHIPPED_MODELS[(256, True)]))
     assert fixed.threshold == 0.45
+
+
+@pytest.mark.parametrize("descriptor", ["sift", "binary"])
+def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descriptor):
+    """Views of 8 keypoints: too few for geometric verification (MIN_SEEDS), and the edge head,
+    trained on verifiable pairs, scores every edge low. The gcn solver then also keeps nn's
+    matches on those view pairs, so it scores as nn does instead of matching nothing."""
+    from gcn_match_ros import synthetic
+    from gcn_match_ros.geometry_verify import MIN_SEEDS
+
+    config = dataclasses.replace(synthetic.preset("easy", 3, descriptor), n_points=8)
+    f = {"gcn": [], "gcn:descriptor_fallback=false": [], "nn": []}
+    for seed in range(3):
+        problem = synthetic.random_scene_problem(config, np.random.default_rng([12, seed]))
+        assert problem.view_sizes.max() < MIN_SEEDS
+        for spec in f:
+            result = get_solver(spec).solve(problem)
+            assert is_cycle_consistent(result.track, problem.view_index)
+            f[spec].append(score_result(problem, result)["F1"])
+    assert np.mean(f["nn"]) > 0.1, f  # descriptors alone find some of the true pairs
+    assert np.mean(f["gcn"]) >= np.mean(f["nn"]) - 1e-9, f
+    assert max(f["gcn:descriptor_fallback=false"]) < 0.1, f  # the head alone: (almost) nothing
+
+
+def test_descriptor_fallback_leaves_normal_windows_alone(one_torch_thread):
+    """No view below MIN_SEEDS keypoints: the fallback changes nothing (the benchmark tables hold)."""
+    problem = load_problem(HELD_OUT)
+    a, b = get_solver("gcn").solve(problem), get_solver("gcn:descriptor_fallback=false").solve(problem)
+    np.testing.assert_array_equal(a.track, b.track)
+    np.testing.assert_array_equal(a.pair_scores, b.pair_scores)

@@ -13,10 +13,11 @@ import os
 from pathlib import Path
 from typing import Optional, Tuple
 
+import numpy as np
 import torch
 
 from ..features import describe_descriptor_kind, descriptor_kind, feature_dim
-from ..graph import CorrespondenceGraph, GraphConfig
+from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..problem import Problem, Result
 from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
 
@@ -41,6 +42,12 @@ class GCNSolverConfig(SolverConfig):
         top_k: candidates kept per keypoint and view in the soft output.
         floor: scores at or below it are not listed.
         device: torch device for the forward pass ("cpu", "cuda").
+        descriptor_fallback: with an edge-scoring model, view pairs that geometric verification
+            cannot check — one view has fewer keypoints than it needs seeds
+            (``geometry_verify.MIN_SEEDS``), as in a low-texture window — also get the ``nn``
+            solver's matches (mutual nearest neighbours passing the ratio test, scored by
+            cosine). The head never saw such pairs in training and scores every edge of them
+            low, so without this a low-texture window matches nothing. False: the head alone.
     """
 
     graph: str = "checkpoint"
@@ -49,6 +56,7 @@ class GCNSolverConfig(SolverConfig):
     top_k: int = 8
     floor: float = 0.01
     device: str = "cpu"
+    descriptor_fallback: bool = True
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -150,6 +158,32 @@ class GCNSolver(Solver):
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 logits = self.model.score_edges(torch.from_numpy(emb), torch.from_numpy(es.rows),
                                                 torch.from_numpy(es.cols), torch.from_numpy(es.features))
-                return SoftMatches(es.rows, es.cols, torch.sigmoid(logits).numpy()), None
+                soft = SoftMatches(es.rows, es.cols, torch.sigmoid(logits).numpy())
+                if self.config.descriptor_fallback and edge_config_of(self.model).geometry:
+                    soft = _with_descriptor_matches(problem, soft)
+                return soft, None
         return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                           top_k=self.config.top_k), None
+
+
+def _with_descriptor_matches(problem: Problem, soft: SoftMatches) -> SoftMatches:
+    """``soft`` plus the ``nn`` solver's matches (mutual NN, ratio 0.8, score = cosine) on every
+    view pair with a view of fewer than ``geometry_verify.MIN_SEEDS`` keypoints, the larger score
+    where both have a pair (:attr:`GCNSolverConfig.descriptor_fallback`). Unchanged when no view
+    is that small."""
+    from ..geometry_verify import MIN_SEEDS
+
+    small = problem.view_sizes < MIN_SEEDS
+    if not small.any():
+        return soft
+    nn_graph = build_graph(problem, GRAPH_PRESETS["ratio0.8"])
+    nn = SoftMatches.from_graph(nn_graph, values=np.clip(nn_graph.cosine, 0.0, 1.0))
+    view = problem.view_index
+    keep = small[view[nn.rows]] | small[view[nn.cols]]
+    n = problem.n_keypoints
+    keys = np.r_[soft.rows * n + soft.cols, nn.rows[keep] * n + nn.cols[keep]]
+    scores = np.r_[soft.scores, nn.scores[keep]].astype(np.float32)
+    order = np.lexsort((-scores, keys))  # per pair, the larger score first
+    keys, scores = keys[order], scores[order]
+    first = np.r_[True, keys[1:] != keys[:-1]]
+    return SoftMatches(keys[first] // n, keys[first] % n, scores[first])
