@@ -102,7 +102,7 @@ def main(argv=None):
     torch.set_num_threads(1)
     data = Path(args.data)
     scenes = make_sequences(fetch_wheel(Path(args.cache)), data)
-    pictures = Path(args.out).with_suffix(".jpg")
+    pictures = Path(args.out).with_name("orb_confirmation_part_b.jpg")  # the same views every run
     montage(data, scenes, pictures)
     cmd = "benchmarks/orb_confirmation.py " + " ".join(argv if argv is not None else sys.argv[1:])
     out = ["# ORB confirmation, part B: homography sequences from unseen photographs\n",
