@@ -149,7 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("convert", help="real images with ground truth -> problem files")
     c.add_argument("--data-root", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
-    c.add_argument("--scenes", nargs="+", required=True, help="e.g. oxford/graf strecha/fountain-P11")
+    c.add_argument("--scenes", nargs="+", required=True,
+                   help="e.g. oxford/graf strecha/fountain-P11; homography/NAME: any sequence in the "
+                        "Oxford layout (img1.png ..., H1toNp) under --data-root")
     c.add_argument("--sizes", nargs="+", type=int, default=[3, 4, 6])
     c.add_argument("--detectors", nargs="+", default=["sift"])
     c.add_argument("--max-features", type=int, default=500)
