@@ -14,7 +14,9 @@ every rank loads the run's checkpoint and the stream continues where it stopped.
 The process group uses the ``gloo`` backend (CPU) and the usual torchrun environment
 (``RANK``, ``WORLD_SIZE``, ``MASTER_ADDR``, ``MASTER_PORT``); on one machine,
 ``--master_addr 127.0.0.1`` keeps all traffic on the loopback interface (set
-``GLOO_SOCKET_IFNAME=lo`` too when the host name resolves to another interface).
+``GLOO_SOCKET_IFNAME=lo`` too when the host name resolves to another interface). torchrun's
+rendezvous store still *listens* on every interface at ``--master_port`` (torch has no
+setting for its bind address): on a shared network, firewall that port.
 """
 from __future__ import annotations
 
