@@ -20,6 +20,7 @@ from ..features import describe_descriptor_kind, descriptor_kind, feature_dim
 from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..problem import Problem, Result
 from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
+from .nn import NNSolver
 
 __all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT", "SHIPPED_MODELS"]
 
@@ -176,8 +177,8 @@ def _with_descriptor_matches(problem: Problem, soft: SoftMatches) -> SoftMatches
     small = problem.view_sizes < MIN_SEEDS
     if not small.any():
         return soft
-    nn_graph = build_graph(problem, GRAPH_PRESETS["ratio0.8"])
-    nn = SoftMatches.from_graph(nn_graph, values=np.clip(nn_graph.cosine, 0.0, 1.0))
+    nn_solver = NNSolver()
+    nn, _ = nn_solver.match(problem, build_graph(problem, nn_solver.graph_config))
     view = problem.view_index
     keep = small[view[nn.rows]] | small[view[nn.cols]]
     n = problem.n_keypoints
