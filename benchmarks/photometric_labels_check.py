@@ -32,15 +32,9 @@ from gcn_match_ros.datasets import (_read_gray, _window_depth_range, extract_fea
 from gcn_match_ros.metrics import count_pairs  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from label_chance import pose_windows  # noqa: E402
+from label_chance import WINDOWS, first_pair_tracks, pose_windows  # noqa: E402
 
 SCENES = ("strecha/castle-P19", "strecha/fountain-P11", "strecha/entry-P10")
-WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
-
-
-def pairs_between(gt, n0, n1):
-    a, b = gt[:n0], gt[n0:n0 + n1]
-    return len(np.intersect1d(a[a >= 0], b[b >= 0]))
 
 
 def main(argv=None):
@@ -68,7 +62,7 @@ def main(argv=None):
             poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
             view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
             geo = label_poses(kps, **poses)
-            z_range = _window_depth_range(kps, **poses)
+            z_range = _window_depth_range(kps, track=geo, **poses)
             photo = label_photometric(kps, imgs, image_sizes=scene.image_sizes[win], z_range=z_range, **poses)
             # geometric true pairs, judged by the photometric labels
             gt_true = [(i, j) for tr in np.unique(geo[geo >= 0]) for i in np.flatnonzero(geo == tr)
@@ -86,9 +80,10 @@ def main(argv=None):
                                      image_sizes=np.r_[scene.image_sizes[win[:2]],
                                                        np.tile([fake_img.shape[1], fake_img.shape[0]], (n_extra, 1))],
                                      z_range=z_range, **poses) if z_range else np.full(1, -2)
-            chance = pairs_between(fake, len(kps[0]), len(kps[1])) if z_range else 0
+            chance = first_pair_tracks(fake, len(kps[0]), len(kps[1])) if z_range else 0
             tot = totals.setdefault(det, np.zeros(6, int))
-            tot += [len(gt_true), agree, disagree, unl, chance, pairs_between(photo, len(kps[0]), len(kps[1]))]
+            real01 = first_pair_tracks(photo, len(kps[0]), len(kps[1]))
+            tot += [len(gt_true), agree, disagree, unl, chance, real01]
             lines.append(f"| {det} | {name.split('/')[1]} | {'-'.join(map(str, win))} | "
                          f"{np.mean(geo != -2):.2f} / {np.mean(photo != -2):.2f} | "
                          f"{count_pairs(geo, view)[1]} / {count_pairs(photo, view)[1]} | "

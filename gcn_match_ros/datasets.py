@@ -74,7 +74,8 @@ windows; 8% with 1000 keypoints; up to 25% in a single window of 4 labelled pair
 pose scenes are therefore noisy (few pairs a window), not dominated by chance labels.
 
 Photometric labels for pose scenes (:func:`label_photometric`; measured against these in
-``benchmarks/results/photometric_labels_check.md``, not used by :func:`make_problem` yet):
+``benchmarks/results/photometric_labels_check.md``; :func:`make_problem` and :func:`convert`
+use them with ``pose_labels="photometric"``):
 each keypoint's depth by plane sweep against its neighbours in the window
 (``plane_sweep.py``: NCC of a fronto-parallel patch, one clear peak), searched over the
 depths of the window's :func:`label_poses` tracks (all ``-2`` with fewer than 5). Then as
@@ -628,12 +629,12 @@ def label_poses(keypoints: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray, t
     return track
 
 
-def _window_depth_range(pts: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray,
-                        t: np.ndarray) -> Optional[Tuple[float, float]]:
-    """Depth range to sweep for a pose window: its :func:`label_poses` tracks triangulated
-    (first two members), depths in every camera, [half the 2nd, twice the 98th percentile];
-    None with fewer than 5 tracks."""
-    track = label_poses(pts, K, R, t)
+def _window_depth_range(pts: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray, t: np.ndarray,
+                        track: Optional[np.ndarray] = None) -> Optional[Tuple[float, float]]:
+    """Depth range to sweep for a pose window: its :func:`label_poses` tracks (``track``, made
+    here if not given) triangulated (first two members), depths in every camera, [half the
+    2nd, twice the 98th percentile]; None with fewer than 5 tracks."""
+    track = label_poses(pts, K, R, t) if track is None else track
     offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])])
     view = np.repeat(np.arange(len(pts)), np.diff(offsets))
     kp = np.concatenate(pts)
