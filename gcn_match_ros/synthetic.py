@@ -55,6 +55,7 @@ from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
 
+from . import features
 from .graph import CorrespondenceGraph
 from .problem import Problem, save_problem
 
@@ -597,7 +598,7 @@ def mutual_nn_prf(problem: Problem) -> Tuple[float, float, float, int, int, int]
     keypoints labelled -2 are left out. Needs ``problem.gt_track``.
     """
     gt = problem.gt_track
-    binary = bool(np.all((problem.descriptors == 0) | (problem.descriptors == 1)))
+    binary = features.descriptor_kind(problem.descriptors)[1]
     # for 0/1 codes a·b - (|a| + |b|) / 2 = -Hamming / 2: the same ranking as Hamming
     d = np.asarray(problem.descriptors, np.float64) if binary else _l2_normalize(problem.descriptors)
     half = d.sum(axis=1) / 2 if binary else np.zeros(len(d))
