@@ -116,7 +116,7 @@ def _mean_ncc(images, K, R, t, v, xy, depth, support, config) -> np.ndarray:
     support view does not count (flat or outside)."""
     scores = np.stack([patch_ncc(images, K, R, t, v, xy, depth, u, config) for u in support])
     counted = np.isfinite(scores).all(axis=0)
-    return np.where(counted, np.where(np.isfinite(scores), scores, 0.0).mean(axis=0), -np.inf)
+    return np.where(counted, scores.mean(axis=0), -np.inf)
 
 
 def lift(images: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray, t: np.ndarray, v: int, xy: np.ndarray,
