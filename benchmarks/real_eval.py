@@ -33,6 +33,9 @@ from gcn_match_ros.metrics import count_pairs, paired_bootstrap  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.solvers import available_solvers  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from train_default import SPLIT_AT, images_of  # noqa: E402
+
 OXFORD = ["graf", "boat", "wall", "bikes"]
 STRECHA = ["fountain-P11", "entry-P10", "castle-P19"]
 # Methods: every registered solver with its defaults, plus the guided variant of the
@@ -46,9 +49,8 @@ SLOW = {"matchals", "pgdds"}
 def role(name: str) -> str:
     if name.startswith("oxford") or "castle" in name:
         return "test"
-    tail = name.rsplit("_", 1)[1]
-    ims = [int(x) for x in (tail.split("-") if "-" in tail else list(tail))]
-    return "train" if max(ims) < 6 else ("val" if min(ims) >= 6 else "train/val overlap")
+    ims = images_of(name)
+    return "train" if max(ims) < SPLIT_AT else ("val" if min(ims) >= SPLIT_AT else "train/val overlap")
 
 
 def windows(names, quick):
@@ -56,10 +58,9 @@ def windows(names, quick):
     starting at images 0 and 6 (castle also 12); --quick: one 3-view window per scene."""
     keep = []
     for n in names:
-        tail = n.rsplit("_", 1)[1]
-        ims = [int(x) for x in (tail.split("-") if "-" in tail else list(tail))]
+        ims = images_of(n)
         if n.startswith("oxford"):
-            ok = tail in (("123",) if quick else ("123", "234", "1234", "123456"))
+            ok = n.rsplit("_", 1)[1] in (("123",) if quick else ("123", "234", "1234", "123456"))
         else:
             starts = (0,) if quick else ((0, 6, 12) if "castle" in n else (0, 6))
             ok = ims[0] in starts and (len(ims) == 3 or not quick)
