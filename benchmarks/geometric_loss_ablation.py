@@ -110,7 +110,7 @@ def main(argv=None):
     # generated scenes never trained on (training streams use seeds [0, k])
     synth = [synthetic.random_scene_problem(preset(3 + i % 2), np.random.default_rng([7, i]), name=f"{preset.__name__}{i}")
              for i in range(6) for preset in (synthetic.rome16k, synthetic.partial)]
-    rows, pr_specs, train_seconds = [], {}, {}
+    rows, test_methods, train_seconds = [], {}, {}
     for name in RUNS:
         ckpt = runs_dir / name / "checkpoint.pt"
         specs = [f"gcn:checkpoint={ckpt},threshold={t}" for t in THRESHOLDS]
@@ -124,11 +124,10 @@ def main(argv=None):
         rows.append((name, " ".join(RUNS[name]), best.rsplit("=", 1)[1], rv[best]["mean"]["F1"],
                      rt["mean"]["F1"], rt["mean"]["AP"], rs["mean"]["F1"], last_val.get("recon", float("nan")),
                      last_val.get("epipolar", float("nan"))))
-        pr_specs[best] = name
+        test_methods[best] = dict(rt, describe=name)  # its held-out scores and PR curve, labelled by run
         print(rows[-1], flush=True)
-    report = evaluate(test, list(pr_specs) + ["nn"], progress=False, with_reference_rows=False)
-    for spec, name in pr_specs.items():
-        report["methods"][spec]["describe"] = name
+    report = evaluate(test, ["nn"], progress=False, with_reference_rows=False)
+    report["methods"] = {**test_methods, **report["methods"]}
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     curves = plot_history([runs_dir / n for n in RUNS], out.with_name("geometric_loss_curves.png"),
