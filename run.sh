@@ -3,7 +3,7 @@
 #
 #   ./run.sh setup              create/refresh .venv, build messages, install the package
 #   ./run.sh test [pytest args] setup, then python -m pytest test/ -q [args]
-#   ./run.sh demo [args]        setup, then python -m gcn_match_ros.demo [args]
+#   ./run.sh demo [args]        setup, then python -m gcn_match_ros.ros.demo [args]
 #   ./run.sh CMD [args]         setup, then run CMD inside the environment
 #                               (e.g. ./run.sh gcn-match eval ..., ./run.sh python ...)
 #

@@ -29,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from gcn_match_ros import synthetic  # noqa: E402
+from gcn_match_ros.data import synthetic  # noqa: E402
 from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
 from gcn_match_ros.metrics import mean_scores, score_result  # noqa: E402
 from gcn_match_ros.solvers import available_solvers, get_solver  # noqa: E402
@@ -102,7 +102,7 @@ def paper_protocol_section(n_problems: int, out) -> dict:
 _SCALING_CHILD = r"""
 import json, resource, sys, time
 import numpy as np, torch
-from gcn_match_ros import synthetic
+from gcn_match_ros.data import synthetic
 from gcn_match_ros.graph import build_graph
 from gcn_match_ros.solvers import get_solver
 spec, views, n, reps = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])

@@ -37,8 +37,9 @@ import torch  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from gcn_match_ros import synthetic  # noqa: E402
-from gcn_match_ros.evaluation import evaluate, plot_pr_curves  # noqa: E402
+from gcn_match_ros.data import synthetic  # noqa: E402
+from gcn_match_ros.evaluation import evaluate  # noqa: E402
+from gcn_match_ros.plots import plot_pr_curves  # noqa: E402
 from gcn_match_ros.plots import plot_history  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from real_eval import role, windows  # noqa: E402

@@ -20,7 +20,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcn_match_ros.datasets import _read_gray, extract_features, label_poses, load_scene  # noqa: E402
+from gcn_match_ros.data.labels import label_poses  # noqa: E402
+from gcn_match_ros.data.scenes import load_scene, read_gray as _read_gray  # noqa: E402
+from gcn_match_ros.detect import extract_features  # noqa: E402
 from gcn_match_ros.metrics import count_pairs  # noqa: E402
 
 SCENES = ("strecha/fountain-P11", "strecha/entry-P10", "strecha/castle-P19")

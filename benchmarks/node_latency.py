@@ -89,7 +89,7 @@ def _machine() -> str:
 def _frames(n_cams: int, n_kp: int, seed: int = 0):
     """Keypoints messages (one per camera) of a synthetic scene, exactly ``n_kp`` per view."""
     from gcn_match_ros.ros.conversions import frame_to_keypoints
-    from gcn_match_ros.synthetic import random_scene_problem, rome16k
+    from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
     from gcn_match_ros.windowing import Frame
 
     p = random_scene_problem(rome16k(n_cams, n_points=n_kp), rng=seed)

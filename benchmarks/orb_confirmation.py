@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from gcn_match_ros.datasets import convert  # noqa: E402
+from gcn_match_ros.data.convert import convert  # noqa: E402
 from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
-from gcn_match_ros.homography_sequence import (SequenceConfig, homography_sequence, source_image,  # noqa: E402
+from gcn_match_ros.data.homography_sequence import (SequenceConfig, homography_sequence, source_image,  # noqa: E402
                                                write_sequence)
 from gcn_match_ros.metrics import count_pairs  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402

@@ -27,8 +27,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcn_match_ros.datasets import (_read_gray, _window_depth_range, extract_features, label_photometric,  # noqa: E402
-                                    label_poses)
+from gcn_match_ros.data.labels import label_photometric, label_poses  # noqa: E402
+from gcn_match_ros.data.labels import window_depth_range as _window_depth_range  # noqa: E402
+from gcn_match_ros.data.scenes import read_gray as _read_gray  # noqa: E402
+from gcn_match_ros.detect import extract_features  # noqa: E402
 from gcn_match_ros.metrics import count_pairs  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))

@@ -27,7 +27,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcn_match_ros.datasets import convert  # noqa: E402
+from gcn_match_ros.data.convert import convert  # noqa: E402
 from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
 from gcn_match_ros.metrics import count_pairs, paired_bootstrap  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402

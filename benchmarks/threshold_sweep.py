@@ -27,12 +27,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcn_match_ros import synthetic  # noqa: E402
+from gcn_match_ros.data import synthetic  # noqa: E402
 from gcn_match_ros.evaluation import evaluate  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.rounding import tracks_to_pairs  # noqa: E402
 from gcn_match_ros.solvers import get_solver  # noqa: E402
-from gcn_match_ros.train import _SYNTH_VAL_SEED  # noqa: E402
+from gcn_match_ros.learn.sources import SYNTH_VAL_SEED as _SYNTH_VAL_SEED  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from train_default import SYNTHETIC_DESCRIPTORS, problem_files, split  # noqa: E402

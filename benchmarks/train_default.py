@@ -26,14 +26,16 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcn_match_ros.datasets import convert  # noqa: E402
-from gcn_match_ros.edge_features import EDGE_FEATURES  # noqa: E402
-from gcn_match_ros.features import FeatureConfig, feature_dim  # noqa: E402
+from gcn_match_ros.data.convert import convert  # noqa: E402
+from gcn_match_ros.edges.candidates import EDGE_FEATURES  # noqa: E402
+from gcn_match_ros.node_features import FeatureConfig, feature_dim  # noqa: E402
 from gcn_match_ros.graph import GraphConfig  # noqa: E402
-from gcn_match_ros.model import GCNConfig  # noqa: E402
+from gcn_match_ros.learn.model import GCNConfig  # noqa: E402
 from gcn_match_ros.solvers.gcn import SHIPPED_MODELS  # noqa: E402
-from gcn_match_ros import synthetic  # noqa: E402
-from gcn_match_ros.train import InterleavedSource, ProblemFileSource, SyntheticSource, TrainConfig, train  # noqa: E402
+from gcn_match_ros.data import synthetic  # noqa: E402
+from gcn_match_ros.learn.config import TrainConfig  # noqa: E402
+from gcn_match_ros.learn.sources import InterleavedSource, ProblemFileSource, SyntheticSource  # noqa: E402
+from gcn_match_ros.learn.train import train  # noqa: E402
 
 TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
 # descriptor kind (dimension, binary) of each detector's problems: the SHIPPED_MODELS key
@@ -125,7 +127,7 @@ def main(argv=None):
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         # the final weights, saved without optimizer state (see models/README.md)
-        from gcn_match_ros.model import load_checkpoint, save_checkpoint
+        from gcn_match_ros.learn.checkpoint import load_checkpoint, save_checkpoint
         model, meta = load_checkpoint(best)
         config = dict(meta["config"], solver={"threshold": args.threshold})
         target = SHIPPED_MODELS[kind]

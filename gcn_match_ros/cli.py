@@ -1,14 +1,18 @@
-"""``gcn-match``: synthesise problems, match them with any method, score and train.
+"""``gcn-match``: every offline command of the project.
 
     gcn-match synth -o DIR [--preset rome16k|partial|easy] [--views 3] [--descriptor sift|gaussian|binary]
                     [--count 10] [--seed 0]
+    gcn-match convert --scenes oxford/graf strecha/fountain-P11 -o DIR   (real images -> problems)
     gcn-match match PROBLEM.npz --method gcn -o RESULT.npz
     gcn-match eval PROBLEM.npz... --methods nn,gcn,matchals [--json OUT] [--pr-plot PNG]
     gcn-match train --train DATA... --val DATA... -o RUN_DIR [--steps N] [--resume]
-    gcn-match convert --scenes oxford/graf strecha/fountain-P11 -o DIR   (real images -> problems)
+    gcn-match plot RUN_DIR... -o curves.png [--data DATA... --pr PNG --similarity PNG --histograms PNG]
+    gcn-match make-bags --out bags/ [--scenes ...] [--detector sift|orb] [--cameras 3]
 
-Every failure caused by arguments or input files prints one line (``gcn-match: error: ...``)
-and exits with status 2; no traceback.
+``torchrun --nproc_per_node=N -m gcn_match_ros.cli train ...`` trains data-parallel
+(:mod:`gcn_match_ros.learn.ddp`). Every failure caused by arguments or input files prints
+one line (``gcn-match: error: ...``) and exits with status 2; no traceback
+(``GCN_MATCH_DEBUG=1`` shows it).
 """
 from __future__ import annotations
 
@@ -16,11 +20,33 @@ import argparse
 import glob
 import json
 import os
+import shutil
 import sys
+from itertools import islice
 from pathlib import Path
-from typing import List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
-__all__ = ["main"]
+from . import evaluation, plots
+from .bags import make as bag_make
+from .bags.io import STORAGES, bag_info
+from .bags.typesys import KEYPOINTS_TYPE
+from .data import synthetic
+from .data.convert import convert
+from .data.scenes import DatasetError
+from .graph import GraphConfig
+from .learn import ddp
+from .learn.checkpoint import load_checkpoint
+from .learn.config import TrainConfig
+from .learn.model import GCNConfig
+from .learn.sources import DataSource, check_disjoint, data_source
+from .learn.train import train
+from .node_features import FeatureConfig, feature_dim
+from .problem import Problem, load_problem, save_result
+from .solvers import get_solver
+
+__all__ = ["main", "build_parser"]
+
+DATA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -42,10 +68,15 @@ def _expand(patterns: Sequence[str]) -> List[Path]:
     return paths
 
 
+def _first_problem(source: DataSource, what: str) -> Problem:
+    try:
+        return next(iter(source(0)))
+    except StopIteration:
+        raise ValueError(f"{what} data yields no problems") from None
+
+
 # -- subcommands ---------------------------------------------------------------
 def _cmd_synth(args) -> int:
-    from . import synthetic
-
     config = synthetic.preset(args.preset, args.views, args.descriptor)
     paths = synthetic.write_problems(args.out, lambda rng: synthetic.random_scene_problem(config, rng),
                                      count=args.count, seed=args.seed, prefix=args.prefix)
@@ -54,9 +85,6 @@ def _cmd_synth(args) -> int:
 
 
 def _cmd_match(args) -> int:
-    from .problem import load_problem, save_result
-    from .solvers import get_solver
-
     problem = load_problem(args.problem)
     result = get_solver(args.method).solve(problem)
     save_result(result, args.output)
@@ -67,31 +95,187 @@ def _cmd_match(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from .evaluation import evaluate, format_table, plot_pr_curves
-
     problems = _expand(args.problems)
     methods = [m for m in args.methods.split(";" if ";" in args.methods else ",") if m]
-    report = evaluate(problems, methods, progress=not args.quiet)
-    print(format_table(report))
+    report = evaluation.evaluate(problems, methods, progress=not args.quiet)
+    print(evaluation.format_table(report))
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=1))
     if args.pr_plot:
-        plot_pr_curves(report, args.pr_plot)
+        plots.plot_pr_curves(report, args.pr_plot)
     return 0
 
 
 def _cmd_train(args) -> int:
-    from .train import run_from_args
+    """``gcn-match train``: build the sources, configurations and run :func:`learn.train.train`.
 
-    return run_from_args(args)
+    Started by torchrun, every process is one rank of a distributed run (:mod:`learn.ddp`). The model
+    configuration is, in order: ``--model-config`` JSON (``in_dim`` filled in when missing),
+    the run's own ``checkpoint.pt`` when resuming, the ``--init`` checkpoint, else the
+    defaults with ``in_dim = feature_dim(D)``; graph and feature settings come from the
+    resumed / ``--init`` checkpoint (else defaults). After training, rank 0 prints where
+    the checkpoints and plots are and draws, when the validation data has ground truth,
+    the similarity matrix and histograms of the best model.
+
+    Raises:
+        ValueError / OSError: bad arguments or data (one-line messages for the CLI).
+    """
+    distributed = ddp.launched_by_torchrun()
+    rank, _ = ddp.rank_and_world(distributed)
+    say = print if rank == 0 else (lambda *a, **k: None)
+    out = Path(args.out)
+    ckpt = out / "checkpoint.pt"
+    if args.steps < 1 or args.batch < 1:
+        raise ValueError("--steps and --batch must be >= 1")
+    if args.lr <= 0:
+        raise ValueError("--lr must be > 0")
+    if args.epipolar_weight < 0 or args.edge_weight < 0:
+        raise ValueError("--epipolar-weight and --edge-weight must be >= 0")
+    if args.init is not None and not Path(args.init).is_file():
+        raise ValueError(f"--init {args.init}: no such checkpoint file")
+
+    base: Optional[Dict[str, Any]] = None
+    if args.resume and ckpt.is_file():
+        _, base = load_checkpoint(ckpt)
+        if args.init is not None:
+            say(f"resuming {ckpt}: --init {args.init} is ignored")
+    elif args.init is not None:
+        _, base = load_checkpoint(args.init)
+    elif args.resume:
+        say(f"no {ckpt} yet: starting a new run")
+    graph_config = base["graph_config"] if base else GraphConfig()
+    feature_config = base["feature_config"] if base else FeatureConfig()
+
+    train_src = data_source(args.train, seed=args.seed, train=True)
+    val_src = data_source(args.val, seed=args.seed, train=False) if args.val else None
+    D = _first_problem(train_src, "--train").descriptors.shape[1]
+    if val_src is not None:
+        check_disjoint(train_src, val_src)
+        Dv = _first_problem(val_src, "--val").descriptors.shape[1]
+        if Dv != D:
+            raise ValueError(f"--val descriptors have D={Dv} but --train descriptors D={D}")
+    in_dim = feature_dim(D, feature_config)
+    if args.model_config is not None:
+        d = json.loads(Path(args.model_config).read_text())
+        if not isinstance(d, dict):
+            raise ValueError(f"--model-config {args.model_config}: expected a JSON object of GCNConfig fields")
+        d.setdefault("in_dim", in_dim)
+        model_config = GCNConfig.from_dict(d)
+    elif base is not None:
+        model_config = base["model_config"]
+    else:
+        model_config = GCNConfig(in_dim=in_dim)
+    if model_config.in_dim != in_dim:
+        raise ValueError(f"the model takes in_dim={model_config.in_dim} features but the data gives "
+                         f"{in_dim} (descriptor D={D}); use data with the model's descriptor or --model-config")
+    every = max(1, min(500, args.steps // 20))
+    cfg = TrainConfig(lr=args.lr, steps=args.steps, batch_size=args.batch, recon_kind=args.recon,
+                      epipolar_weight=args.epipolar_weight, edge_weight=args.edge_weight, seed=args.seed,
+                      val_every=every, checkpoint_every=every, log_every=max(1, min(10, every)), graph=graph_config,
+                      features=feature_config)
+    _, world = ddp.rank_and_world(distributed)
+    say(f"train: {train_src.description}")  # type: ignore[attr-defined]
+    if val_src is not None:
+        say(f"val:   {val_src.description}")  # type: ignore[attr-defined]
+    say(f"model: {len(model_config.widths)} layers, widths {model_config.widths[0]}..{model_config.widths[-1]}, "
+        f"in_dim {model_config.in_dim}; {args.steps} steps x {args.batch} graphs"
+        + (f" x {world} ranks" if world > 1 else "") + f" -> {out}")
+    history = train(model_config, train_src, val_src, cfg, out, resume=args.resume, init=args.init,
+                    distributed=distributed)
+    if rank != 0:
+        return 0
+    best = history.get("best") or {}
+    say(f"checkpoints: {ckpt} (step {cfg.steps}), {out / 'best.pt'}"
+        + (f" (step {best['step']}, {best['source']} loss {best['loss']:.4f})" if best else ""))
+    say(f"history: {out / 'history.json'}")
+    plots = [out / "curves.png"] if (out / "curves.png").is_file() else []
+    if val_src is not None and (out / "best.pt").is_file():
+        plots += _result_plots(out, val_src, cfg.val_size)
+    if plots:
+        say("plots: " + ", ".join(str(p) for p in plots))
+    return 0
+
+
+def _result_plots(out: Path, val_src: DataSource, count: int) -> List[Path]:
+    """similarity.png and histograms.png of the best model on labelled validation problems."""
+    problems = [p for p in islice(val_src(0), count) if p.gt_track is not None]
+    if not problems:
+        return []
+    model, meta = load_checkpoint(out / "best.pt")
+    written = []
+    try:
+        plots.plot_similarity(model, problems[0], out / "similarity.png", meta["graph_config"],
+                              meta["feature_config"])
+        written.append(out / "similarity.png")
+        plots.plot_similarity_histograms(model, problems, out / "histograms.png", meta["graph_config"],
+                                         meta["feature_config"])
+        written.append(out / "histograms.png")
+    except ValueError as exc:
+        print(f"(no similarity plots: {exc})")
+    return written
 
 
 def _cmd_convert(args) -> int:
-    from . import datasets
-
-    paths = datasets.convert(args.data_root, args.out, scenes=args.scenes, sizes=tuple(args.sizes),
+    paths = convert(args.data_root, args.out, scenes=args.scenes, sizes=tuple(args.sizes),
                              detectors=tuple(args.detectors), max_features=args.max_features)
     print(f"wrote {len(paths)} problems to {args.out}")
+    return 0
+
+def _cmd_plot(args) -> int:
+    """Curves of runs; with --data, figures of their best models."""
+    labels = args.labels or [r.resolve().name for r in args.runs]
+    if args.labels and len(args.labels) != len(args.runs):
+        raise ValueError(f"--labels: {len(args.labels)} names for {len(args.runs)} runs")
+    print(plots.plot_history(args.runs, args.out, labels=labels))
+    if not (args.pr or args.similarity or args.histograms):
+        return 0
+    if not args.data:
+        raise ValueError("--pr, --similarity and --histograms need --data")
+    problems = [q for q in islice(data_source(args.data, train=False)(0), args.count) if q.gt_track is not None]
+    if not problems:
+        raise ValueError("--data holds no problems with ground truth")
+    ckpts = {lab: r / "best.pt" for lab, r in zip(labels, args.runs)}
+    loaded = {lab: load_checkpoint(c) for lab, c in ckpts.items()}
+    if args.pr:
+        specs = {f"gcn:checkpoint={Path(p)}": lab for lab, p in ckpts.items()}
+        report = evaluation.evaluate(problems, list(specs) + ["nn"], progress=False, with_reference_rows=False)
+        for spec, lab in specs.items():
+            report["methods"][spec]["describe"] = lab
+        print(plots.plot_pr_curves(report, args.pr))
+    if args.similarity:
+        model, meta = loaded[labels[0]]
+        print(plots.plot_similarity(model, problems[0], args.similarity, meta["graph_config"],
+                                    meta["feature_config"]))
+    if args.histograms:
+        print(plots.plot_similarity_histograms(loaded, problems, args.histograms))
+    return 0
+
+
+def _cmd_make_bags(args) -> int:
+    """Sample bags from dataset scenes (:mod:`gcn_match_ros.bags.make`)."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for scene in args.scenes:
+        name = bag_make.bag_name(scene, args.detector)
+        path = args.out / (name if args.storage == "mcap" else name[:-len(".mcap")])
+        if path.exists():
+            if not args.force:
+                raise _UserError(f"{path} exists (use --force to replace it)")
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        try:
+            bag_make.convert_scene_to_bag(args.data_root, scene, path, n_cameras=args.cameras,
+                                          detector=args.detector, max_features=args.max_features,
+                                          rate_hz=args.rate, stagger=args.stagger, storage=args.storage,
+                                          progress=not args.quiet)
+        except (DatasetError, ValueError) as exc:
+            raise _UserError(f"{scene}: {exc}") from None
+        written.append(path)
+    for path in written:
+        info = bag_info(path)
+        size = path.stat().st_size if path.is_file() else sum(f.stat().st_size for f in path.rglob("*"))
+        frames = sum(n for t, n in info.counts.items() if info.topics[t] == KEYPOINTS_TYPE)
+        print(f"{path}: {size / 1e6:.2f} MB, {frames} frames, {info.message_count} messages, "
+              f"{len(info.topics)} topics, {(info.end_ns - info.start_ns) * 1e-9:.3f} s")
     return 0
 
 
@@ -148,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(func=_cmd_train)
 
     c = sub.add_parser("convert", help="real images with ground truth -> problem files")
-    c.add_argument("--data-root", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    c.add_argument("--data-root", type=Path, default=DATA_ROOT)
     c.add_argument("--scenes", nargs="+", required=True,
                    help="e.g. oxford/graf strecha/fountain-P11; homography/NAME: any sequence in the "
                         "Oxford layout (img1.png ..., H1toNp) under --data-root")
@@ -157,21 +341,56 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-features", type=int, default=500)
     c.add_argument("-o", "--out", required=True, type=Path)
     c.set_defaults(func=_cmd_convert)
+
+    g = sub.add_parser("plot", help="training curves of runs, and figures of their best models")
+    g.add_argument("runs", nargs="+", type=Path, help="run folders (with history.json)")
+    g.add_argument("-o", "--out", required=True, type=Path, help="curves PNG")
+    g.add_argument("--labels", nargs="+", help="legend names, one per run")
+    g.add_argument("--data", nargs="+", help="labelled problems for --pr/--similarity/--histograms "
+                                             "(same forms as train --val)")
+    g.add_argument("--count", type=int, default=16, help="problems taken from --data")
+    g.add_argument("--pr", type=Path, help="precision-recall PNG of the runs' best.pt (+ mutual NN)")
+    g.add_argument("--similarity", type=Path, help="similarity-matrix PNG (first run, first problem)")
+    g.add_argument("--histograms", type=Path, help="same/different similarity histograms PNG")
+    g.set_defaults(func=_cmd_plot)
+
+    b = sub.add_parser("make-bags", help="sample bags (a rig sliding along a scene's images) from shared/data")
+    b.add_argument("--out", type=Path, required=True, help="output folder")
+    b.add_argument("--data-root", type=Path, default=DATA_ROOT, help="shared/data")
+    b.add_argument("--scenes", nargs="+", default=list(bag_make.DEFAULT_SCENES),
+                   help=f"scene ids under --data-root (default: {' '.join(bag_make.DEFAULT_SCENES)})")
+    b.add_argument("--detector", choices=("sift", "orb"), default="sift")
+    b.add_argument("--max-features", type=int, default=500, help="per image, before de-duplication")
+    b.add_argument("--cameras", type=int, default=3, help="cameras of the rig (views per window)")
+    b.add_argument("--rate", type=float, default=2.0, help="rig captures per second")
+    b.add_argument("--stagger", type=float, default=0.002, help="camera j is stamped j * STAGGER s later")
+    b.add_argument("--storage", choices=STORAGES, default="mcap",
+                   help="mcap: single .mcap files; sqlite3: rosbag2 directories")
+    b.add_argument("--force", action="store_true", help="replace existing bags")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=_cmd_make_bags)
     return p
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    """Run the command line; GCN_MATCH_DEBUG=1 shows tracebacks instead of one-line errors."""
+    """Run the command line; returns the exit status."""
+    distributed = ddp.launched_by_torchrun()
+    if distributed:
+        ddp.init_process_group()
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
     except (_UserError, ValueError, OSError, KeyError) as exc:  # FormatError, CheckpointError are ValueErrors
         if os.environ.get("GCN_MATCH_DEBUG"):
             raise
-        print(f"gcn-match: error: {exc}", file=sys.stderr)
+        where = f" (rank {ddp.rank_and_world(True)[0]})" if distributed else ""
+        print(f"gcn-match: error{where}: {exc}", file=sys.stderr)
     except KeyboardInterrupt:
         print("gcn-match: interrupted", file=sys.stderr)
         return 130
+    finally:
+        if distributed:
+            ddp.destroy_process_group()
     return 2
 
 

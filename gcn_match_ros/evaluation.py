@@ -17,7 +17,7 @@ from .metrics import SCORE_KEYS, mean_scores, pr_curve, reference_rows, score_re
 from .problem import Problem, load_problem
 from .solvers import get_solver
 
-__all__ = ["evaluate", "format_table", "plot_pr_curves"]
+__all__ = ["evaluate", "format_table"]
 
 ProblemLike = Union[Problem, str, Path]
 
@@ -118,30 +118,3 @@ def format_table(report: Dict) -> str:
         for name, reason in list(entry.get("skipped", {}).items())[:3]:
             lines.append(f"\n{spec} skipped {name}: {reason}")
     return "\n".join(lines)
-
-
-def plot_pr_curves(report: Dict, path) -> None:
-    """Precision–recall curves of every method (pooled over problems) to a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 5))
-    for spec, entry in report["methods"].items():
-        pr = entry.get("pr")
-        if not pr or not pr["precision"]:
-            continue
-        ap = entry["mean"].get("AP", float("nan"))
-        ax.plot(pr["recall"], pr["precision"], label=f"{entry['describe']} (AP {ap:.3f})")
-    ax.set_xlabel("recall")
-    ax.set_ylabel("precision")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.02)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
-    ax.set_title(f"Precision–recall over {len(report['problems'])} problems")
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)

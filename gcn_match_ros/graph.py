@@ -17,15 +17,16 @@ test, a similarity floor, binary weights — select a subset of the same candida
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Dict, Optional
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .descriptors import NORMALIZATIONS, normalize_descriptors
 from .problem import Problem
 
-__all__ = ["GraphConfig", "CorrespondenceGraph", "build_graph", "normalize_descriptors"]
+__all__ = ["GraphConfig", "GRAPH_PRESETS", "CorrespondenceGraph", "build_graph"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +60,7 @@ class GraphConfig:
             raise ValueError(f"GraphConfig.ratio must be in (0, 1], got {self.ratio}")
         if self.rescale not in ("minmax", "none"):
             raise ValueError(f"GraphConfig.rescale must be 'minmax' or 'none', got {self.rescale!r}")
-        if self.normalization not in ("l2", "rootsift"):
+        if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"GraphConfig.normalization must be 'l2' or 'rootsift', got {self.normalization!r}")
 
     @classmethod
@@ -71,6 +72,17 @@ class GraphConfig:
     def mutual_nn(cls, ratio: Optional[float] = None) -> "GraphConfig":
         """Binary mutual-nearest-neighbour graph (optionally with Lowe's ratio test)."""
         return cls(k=1, mutual=True, ratio=ratio, binary=True, rescale="none")
+
+
+#: Named input graphs; solver settings select one with ``graph=<name>``.
+GRAPH_PRESETS: Dict[str, GraphConfig] = {
+    "knn4": GraphConfig.paper(4),
+    "knn8": GraphConfig.paper(8),
+    "mutual": GraphConfig.mutual_nn(),
+    "ratio0.8": GraphConfig.mutual_nn(0.8),
+    "mutual-soft": GraphConfig(k=1, mutual=True, rescale="none"),
+    "ratio0.8-soft": GraphConfig(k=1, mutual=True, ratio=0.8, rescale="none"),
+}
 
 
 @dataclasses.dataclass
@@ -127,19 +139,6 @@ class CorrespondenceGraph:
         """Undirected edges once: (rows, cols, edge positions) with rows < cols."""
         keep = np.flatnonzero(self.rows < self.cols)
         return self.rows[keep], self.cols[keep], keep
-
-
-def normalize_descriptors(desc: np.ndarray, normalization: str = "l2") -> np.ndarray:
-    """Row-normalise descriptors so that dot products are cosines.
-
-    Shapes: desc (N, D) -> (N, D) float32 with unit rows (zero rows stay zero).
-    """
-    d = np.asarray(desc, dtype=np.float32)
-    if normalization == "rootsift":
-        d = np.abs(d)
-        d = np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
-    norm = np.linalg.norm(d, axis=1, keepdims=True)
-    return d / np.maximum(norm, 1e-12)
 
 
 def _top_candidates(sim: torch.Tensor, k: int):

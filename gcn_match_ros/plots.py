@@ -1,41 +1,35 @@
-"""Figures of training runs (matplotlib, Agg backend: no display needed).
+"""Figures (matplotlib, Agg backend: no display needed); nothing here computes results.
 
 - :func:`plot_history`: training (thin) and validation (thick, dots) losses of one or
   several runs over steps, one panel per loss term; overlaying runs compares settings,
-  e.g. with and without the geometric (epipolar) loss. :func:`train.train` writes
-  ``curves.png`` with it.
-- :func:`plot_pr`: precision–recall curves of the runs' ``best.pt`` (and any other
-  method) on problems, through :func:`evaluation.evaluate` / :func:`evaluation.plot_pr_curves`.
+  e.g. with and without the geometric (epipolar) loss. :func:`gcn_match_ros.learn.train.train`
+  writes ``curves.png`` with it.
+- :func:`plot_pr_curves`: precision–recall curves of an :func:`gcn_match_ros.evaluation.evaluate`
+  report.
 - :func:`plot_similarity`: for one (small) problem with ground truth, the input graph A,
   the network's EEᵀ and the ground truth XXᵀ side by side, views in blocks and the
   keypoints of each view ordered by ground-truth track (so true matches form diagonals).
 - :func:`plot_similarity_histograms`: distributions of EEᵀ over cross-view pairs of the
   same scene point and of different points (the paper's histograms).
 
-Command line (curves of runs; optional figures of their best models on data)::
-
-    python -m gcn_match_ros.plots RUN_DIR [RUN_DIR...] -o curves.png [--labels A B]
-        [--data SPEC... [--count 16] [--pr pr.png] [--similarity sim.png] [--histograms hist.png]]
-
-``SPEC`` takes the forms of ``gcn-match train --val`` (problem files, bags, synth:PRESET).
+``gcn-match plot`` draws them for training runs.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .features import FeatureConfig
 from .graph import GraphConfig
+from .learn.model import embed_problem
+from .node_features import FeatureConfig
 from .problem import Problem
 
-__all__ = ["load_history", "plot_history", "plot_pr", "plot_similarity", "similarity_order",
-           "cross_view_similarities", "plot_similarity_histograms", "main"]
+__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_similarity", "similarity_order",
+           "cross_view_similarities", "plot_similarity_histograms"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
 _TERMS = ("loss", "recon", "epipolar", "edge")
@@ -50,10 +44,10 @@ def _plt():
     return plt
 
 
-def _save(fig, path) -> Path:
+def _save(fig, path, dpi: int = 110) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     _plt().close(fig)
     return path
 
@@ -169,27 +163,30 @@ def plot_history(runs: Union[RunLike, Sequence[RunLike]], path, labels: Optional
 # ---------------------------------------------------------------------------
 # Precision-recall
 # ---------------------------------------------------------------------------
-def plot_pr(checkpoints: Mapping[str, Union[str, Path]], problems: Sequence[Problem], path,
-            extra_methods: Sequence[str] = (), progress: bool = False) -> Dict[str, Any]:
-    """Precision–recall curves of GCN checkpoints (label -> ``.pt``) and ``extra_methods``
-    (e.g. ``"nn"``) on labelled problems; returns the :func:`evaluation.evaluate` report."""
-    from .evaluation import evaluate, plot_pr_curves
-
-    specs = {f"gcn:checkpoint={Path(p)}": label for label, p in checkpoints.items()}
-    report = evaluate(list(problems), list(specs) + list(extra_methods), progress=progress,
-                      with_reference_rows=False)
-    for spec, label in specs.items():
-        report["methods"][spec]["describe"] = label
-    plot_pr_curves(report, path)
-    return report
+def plot_pr_curves(report: Mapping[str, Any], path) -> Path:
+    """Precision–recall curves of every method (pooled over problems) to a PNG."""
+    fig, ax = _plt().subplots(figsize=(6, 5))
+    for spec, entry in report["methods"].items():
+        pr = entry.get("pr")
+        if not pr or not pr["precision"]:
+            continue
+        ap = entry["mean"].get("AP", float("nan"))
+        ax.plot(pr["recall"], pr["precision"], label=f"{entry['describe']} (AP {ap:.3f})")
+    ax.set_xlabel("recall")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
+    ax.set_title(f"Precision–recall over {len(report['problems'])} problems")
+    fig.tight_layout()
+    return _save(fig, path, dpi=120)
 
 
 # ---------------------------------------------------------------------------
 # Similarity matrices
 # ---------------------------------------------------------------------------
 def _embed(model, problem: Problem, graph_config: GraphConfig, feature_config: FeatureConfig):
-    from .model import embed_problem
-
     return embed_problem(model, problem, graph_config, feature_config)
 
 
@@ -330,56 +327,3 @@ def plot_similarity_histograms(models, problems: Sequence[Problem], path,
     fig.suptitle(title or f"cross-view similarities over {len(problems)} problem(s)", fontsize=11)
     fig.tight_layout()
     return _save(fig, path)
-
-
-# ---------------------------------------------------------------------------
-# Command line
-# ---------------------------------------------------------------------------
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m gcn_match_ros.plots",
-                                description="Training curves of runs, and figures of their best models.")
-    p.add_argument("runs", nargs="+", type=Path, help="run folders (with history.json)")
-    p.add_argument("-o", "--out", required=True, type=Path, help="curves PNG")
-    p.add_argument("--labels", nargs="+", help="legend names, one per run")
-    p.add_argument("--data", nargs="+", help="labelled problems for --pr/--similarity/--histograms "
-                                             "(problem files, bags, synth:PRESET[:VIEWS[:DESCRIPTOR]])")
-    p.add_argument("--count", type=int, default=16, help="problems taken from --data")
-    p.add_argument("--pr", type=Path, help="precision-recall PNG of the runs' best.pt (+ mutual NN)")
-    p.add_argument("--similarity", type=Path, help="similarity-matrix PNG (first run, first problem)")
-    p.add_argument("--histograms", type=Path, help="same/different similarity histograms PNG")
-    args = p.parse_args(argv)
-    try:
-        labels = args.labels or [r.resolve().name for r in args.runs]
-        print(plot_history(args.runs, args.out, labels=labels))
-        if args.pr or args.similarity or args.histograms:
-            if not args.data:
-                raise ValueError("--pr, --similarity and --histograms need --data")
-            from itertools import islice
-
-            from .model import load_checkpoint
-            from .train import data_source
-
-            problems = [q for q in islice(data_source(args.data, train=False)(0), args.count)
-                        if q.gt_track is not None]
-            if not problems:
-                raise ValueError("--data holds no problems with ground truth")
-            ckpts = {lab: r / "best.pt" for lab, r in zip(labels, args.runs)}
-            loaded = {lab: load_checkpoint(c) for lab, c in ckpts.items()}
-            if args.pr:
-                plot_pr(ckpts, problems, args.pr, extra_methods=["nn"])
-                print(args.pr)
-            if args.similarity:
-                model, meta = loaded[labels[0]]
-                plot_similarity(model, problems[0], args.similarity, meta["graph_config"], meta["feature_config"])
-                print(args.similarity)
-            if args.histograms:
-                plot_similarity_histograms(loaded, problems, args.histograms)
-                print(args.histograms)
-    except (ValueError, OSError) as exc:
-        print(f"plots: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

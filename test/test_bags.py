@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcn_match_ros import bags
+from gcn_match_ros import geometry, stamps
+from gcn_match_ros.bags import codec, contents, typesys
+from gcn_match_ros.bags import io as bag_io
 from gcn_match_ros.windowing import Frame, WindowAssembler, WindowConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,7 +47,7 @@ def synthetic_frames(steps: int = 5, dim: int = 8, seed: int = 0, skip=((3, "cam
             calibrated = cam != "cam2"
             K = np.array([[500.0 + j, 0, 320], [0, 501.0, 240], [0, 0, 1]]) if calibrated else None
             frames[cam].append(Frame(
-                camera_id=cam, stamp=bags.ns_to_stamp(1_700_000_000 * 10**9 + k * 10**8 + j * 2 * 10**6),
+                camera_id=cam, stamp=stamps.ns_to_seconds(1_700_000_000 * 10**9 + k * 10**8 + j * 2 * 10**6),
                 keypoints=rng.uniform(0, 600, (n, 2)).astype(np.float32),
                 descriptors=rng.normal(size=(n, dim)).astype(np.float32), frame_id=f"{cam}_optical_frame",
                 scales=rng.uniform(1, 9, n).astype(np.float32),
@@ -77,21 +79,21 @@ def in_stamp_order(frames_by_cam):
 
 
 def test_typestore_matches_installed_messages():
-    store = bags.typestore()
-    T = store.types[bags.LABELS_TYPE]
+    store = typesys.typestore()
+    T = store.types[typesys.LABELS_TYPE]
     assert (T.UNMATCHED, T.UNLABELLED) == (-1, -2)
-    for name in bags.OUR_TYPES:  # a stale message build would decode bags differently
+    for name in typesys.OUR_TYPES:  # a stale message build would decode bags differently
         src = (REPO / "msg_defs" / "msg" / f"{name}.msg").read_text()
-        assert bags.find_msg_file(f"gcn_match_msgs/msg/{name}").read_text() == src, \
+        assert typesys.find_msg_file(f"gcn_match_msgs/msg/{name}").read_text() == src, \
             f"installed {name}.msg differs from msg_defs/: run ./run.sh setup"
 
 
 @pytest.mark.parametrize("storage, name", [("mcap", "scene.mcap"), ("sqlite3", "scene_db")])
 def test_round_trip_frames_labels_windows(tmp_path, storage, name):
     frames, labels = synthetic_frames()
-    path = bags.write_scene_bag(tmp_path / name, frames, labels, storage=storage, label_method="test")
+    path = contents.write_scene_bag(tmp_path / name, frames, labels, storage=storage, label_method="test")
     assert path.is_file() == (storage == "mcap")
-    c = bags.read_bag(path)
+    c = contents.read_bag(path)
     assert c.cameras == list(CAMS)
     assert {t for t in c.topics} == {f"/{cam}/{x}" for cam in CAMS for x in ("keypoints", "camera_info", "gt_labels")} \
         | {"/cam0/pose", "/cam1/pose"}
@@ -107,7 +109,7 @@ def test_round_trip_frames_labels_windows(tmp_path, storage, name):
     for config in (WindowConfig(cameras=CAMS), WindowConfig(cameras=CAMS, max_keypoints=12, min_views=2)):
         direct = WindowAssembler(dataclasses.replace(config, descriptor_dim=8))
         expected = [w for f in in_stamp_order(frames) for w in direct.add(f)] + direct.flush()
-        got = list(bags.bag_windows(path, config))
+        got = list(contents.bag_windows(path, config))
         assert len(got) == len(expected) == 5
         assert [len(w) for w, _ in got] == [3, 3, 3, 2, 3]  # step 3 has no cam2 frame
         for (wa, la), wb in zip(got, expected):
@@ -128,67 +130,67 @@ def test_binary_descriptors_and_uncalibrated_round_trip():
     bits = rng.integers(0, 2, (7, 256)).astype(np.float32)
     f = Frame(camera_id="cam0", stamp=12.5, keypoints=rng.uniform(0, 9, (7, 2)).astype(np.float32),
               descriptors=bits, frame_id="cam0_optical_frame")
-    store = bags.typestore()
-    msg = bags.keypoints_msg(f, "orb")
+    store = typesys.typestore()
+    msg = codec.keypoints_msg(f, "orb")
     assert msg.descriptor_type == 1 and len(msg.descriptors_binary) == 7 * 32 and len(msg.descriptors) == 0
-    back = bags.frame_from_keypoints_msg(store.deserialize_cdr(store.serialize_cdr(msg, bags.KEYPOINTS_TYPE),
-                                                               bags.KEYPOINTS_TYPE))
+    back = codec.frame_from_keypoints_msg(store.deserialize_cdr(store.serialize_cdr(msg, typesys.KEYPOINTS_TYPE),
+                                                               typesys.KEYPOINTS_TYPE))
     assert_frames_equal(back, f)
     assert back.K is None and back.image_size is None and back.scales is None
 
 
 def test_window_labels_singletons_become_unmatched():
-    np.testing.assert_array_equal(bags.window_labels(np.array([5, 5, 7, -1, -2, 9])), [5, 5, -1, -1, -2, -1])
+    np.testing.assert_array_equal(contents.window_labels(np.array([5, 5, 7, -1, -2, 9])), [5, 5, -1, -1, -2, -1])
 
 
 def test_pose_convention_round_trip():
     rng = np.random.default_rng(2)
     for _ in range(50):
         R, t = _rotation(rng), rng.normal(size=3) * 5
-        C, q = bags.rt_to_pose(R, t)
+        C, q = geometry.rt_to_pose(R, t)
         np.testing.assert_allclose(R @ C + t, 0, atol=1e-12)  # position is the camera centre
-        R_wc = bags.quat_to_matrix(q)
+        R_wc = geometry.quat_to_matrix(q)
         np.testing.assert_allclose(R_wc, R.T, atol=1e-12)  # orientation is camera->world
         np.testing.assert_allclose(R_wc @ [0, 0, 1], R[2], atol=1e-12)  # optical axis in world
-        R2, t2 = bags.pose_to_rt(C, q)
+        R2, t2 = geometry.pose_to_rt(C, q)
         np.testing.assert_allclose(R2, R, atol=1e-12)
         np.testing.assert_allclose(t2, t, atol=1e-12)
     for R in (np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])):
-        np.testing.assert_allclose(bags.quat_to_matrix(bags.matrix_to_quat(R)), R, atol=1e-12)
+        np.testing.assert_allclose(geometry.quat_to_matrix(geometry.matrix_to_quat(R)), R, atol=1e-12)
 
 
 def test_truncated_or_corrupt_bag_raises_bag_error(tmp_path):
     frames, labels = synthetic_frames(steps=3)
-    path = bags.write_scene_bag(tmp_path / "ok.mcap", frames, labels)
+    path = contents.write_scene_bag(tmp_path / "ok.mcap", frames, labels)
     data = path.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) // 2])
-    for call in (bags.read_bag, bags.bag_info, lambda p: list(bags.bag_windows(p, WindowConfig(cameras=CAMS)))):
-        with pytest.raises(bags.BagError, match=re.escape(str(cut))):
+    for call in (contents.read_bag, bag_io.bag_info, lambda p: list(contents.bag_windows(p, WindowConfig(cameras=CAMS)))):
+        with pytest.raises(bag_io.BagError, match=re.escape(str(cut))):
             call(cut)
-    with pytest.raises(bags.BagError, match="no such bag"):
-        bags.read_bag(tmp_path / "missing.mcap")
+    with pytest.raises(bag_io.BagError, match="no such bag"):
+        contents.read_bag(tmp_path / "missing.mcap")
     # intact index, damaged chunk data: fails mid-way, still a BagError naming the file
     bad = tmp_path / "bad.mcap"
     mid = bytearray(data)
     mid[len(data) // 3: len(data) // 3 + 64] = b"\xff" * 64
     bad.write_bytes(bytes(mid))
-    with pytest.raises(bags.BagError, match=re.escape(str(bad))):
-        bags.read_bag(bad)
-    assert issubclass(bags.BagError, ValueError)
+    with pytest.raises(bag_io.BagError, match=re.escape(str(bad))):
+        contents.read_bag(bad)
+    assert issubclass(bag_io.BagError, ValueError)
 
 
 def test_restamp_cdr_shifts_header_only():
-    store = bags.typestore()
+    store = typesys.typestore()
     frames, _ = synthetic_frames(steps=1)
-    msg = bags.keypoints_msg(frames["cam0"][0])
-    raw = bytes(store.serialize_cdr(msg, bags.KEYPOINTS_TYPE))
-    out = store.deserialize_cdr(bags.restamp_cdr(raw, 1_500_000_000), bags.KEYPOINTS_TYPE)
+    msg = codec.keypoints_msg(frames["cam0"][0])
+    raw = bytes(store.serialize_cdr(msg, typesys.KEYPOINTS_TYPE))
+    out = store.deserialize_cdr(bag_io.restamp_cdr(raw, 1_500_000_000), typesys.KEYPOINTS_TYPE)
     shifted = out.header.stamp.sec * 10**9 + out.header.stamp.nanosec
-    assert shifted == bags.stamp_to_ns(frames["cam0"][0].stamp) + 1_500_000_000
+    assert shifted == stamps.seconds_to_ns(frames["cam0"][0].stamp) + 1_500_000_000
     np.testing.assert_array_equal(out.keypoints, msg.keypoints)
-    assert bags.has_header(bags.KEYPOINTS_TYPE) and bags.has_header(bags.POSE_TYPE)
-    assert not bags.has_header("geometry_msgs/msg/Pose") and not bags.has_header("no_such_pkg/msg/Nothing")
+    assert typesys.has_header(typesys.KEYPOINTS_TYPE) and typesys.has_header(typesys.POSE_TYPE)
+    assert not typesys.has_header("geometry_msgs/msg/Pose") and not typesys.has_header("no_such_pkg/msg/Nothing")
 
 
 # --------------------------------------------------------------------------------------
@@ -202,15 +204,15 @@ SAMPLES = {"oxford_graf_sift.mcap": ("oxford/graf", False),
 @pytest.mark.parametrize("name", sorted(SAMPLES))
 def test_sample_bags_load_with_documented_topics(name):
     path = BAGS / name
-    assert path.is_file(), f"missing sample bag {path} (python -m gcn_match_ros.make_bags --out bags/)"
+    assert path.is_file(), f"missing sample bag {path} (gcn-match make-bags --out bags/)"
     assert path.stat().st_size < 5e6
     assert name in (BAGS / "README.md").read_text()
     scene, has_poses = SAMPLES[name]
-    c = bags.read_bag(path)
+    c = contents.read_bag(path)
     per_cam = ("keypoints", "camera_info", "gt_labels") + (("pose",) if has_poses else ())
     assert set(c.topics) == {f"/{cam}/{x}" for cam in CAMS for x in per_cam}
-    assert c.topics["/cam0/keypoints"] == bags.KEYPOINTS_TYPE and c.topics["/cam0/gt_labels"] == bags.LABELS_TYPE
-    assert c.topics["/cam0/camera_info"] == bags.CAMERA_INFO_TYPE
+    assert c.topics["/cam0/keypoints"] == typesys.KEYPOINTS_TYPE and c.topics["/cam0/gt_labels"] == typesys.LABELS_TYPE
+    assert c.topics["/cam0/camera_info"] == typesys.CAMERA_INFO_TYPE
     n_images = len(set(s for cam in CAMS for s in c.sources[cam]))
     windows = list(c.windows(WindowConfig(cameras=CAMS)))
     assert len(windows) == n_images - len(CAMS) + 1 and all(len(w) == 3 and l is not None for w, l in windows)
@@ -225,7 +227,7 @@ def test_sample_bags_load_with_documented_topics(name):
                 np.testing.assert_array_equal(seen[src][1], lab)
             seen[src] = (f, lab)
     if has_poses:  # poses round-trip to the dataset's world->camera R, t
-        from gcn_match_ros import datasets
+        from gcn_match_ros.data import scenes as datasets
         sc = datasets.load_scene(SHARED_DATA, scene)
         for src, (f, _) in seen.items():
             v = [str(p.relative_to(SHARED_DATA)) for p in sc.image_paths].index(src)
@@ -289,20 +291,20 @@ def test_play_record_round_trip_through_dds(tmp_path, ros_env):
     assert rec.returncode == 0, rec_out
     assert out.is_file(), rec_out
 
-    info = bags.bag_info(out)
-    assert info.topics == {t: bags.bag_info(src).topics[t] for t in topics}
+    info = bag_io.bag_info(out)
+    assert info.topics == {t: bag_io.bag_info(src).topics[t] for t in topics}
     assert all(info.counts[t] == 9 for t in topics), (info.counts, rec_out)
     # decoded fields equal, message by message, in order
     orig = {t: [] for t in topics}
     got = {t: [] for t in topics}
-    store = bags.typestore()
+    store = typesys.typestore()
     for which, path in ((orig, src), (got, out)):
-        for topic, msgtype, _, raw in bags.iter_raw(path, topics):
+        for topic, msgtype, _, raw in bag_io.iter_raw(path, topics):
             which[topic].append(store.deserialize_cdr(raw, msgtype))
     for t in topics:
         assert all(_decoded_equal(a, b) for a, b in zip(orig[t], got[t])), t
     # and the frames/labels/poses the trainer sees
-    a, b = bags.read_bag(src), bags.read_bag(out)
+    a, b = contents.read_bag(src), contents.read_bag(out)
     for cam in CAMS[:2]:
         for fa, fb, la, lb in zip(a.frames[cam], b.frames[cam], a.labels[cam], b.labels[cam]):
             assert_frames_equal(fa, fb)

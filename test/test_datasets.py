@@ -7,9 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gcn_match_ros.datasets import (DatasetError, convert, extract_features, label_homography, label_poses,
-                                    load_scene, make_problem, problem_name, read_middlebury, read_oxford,
-                                    read_strecha, sample_windows)
+from gcn_match_ros.data.convert import convert, make_problem, problem_name, sample_windows
+from gcn_match_ros.data.labels import label_homography, label_poses
+from gcn_match_ros.data.scenes import DatasetError, load_scene, read_middlebury, read_oxford, read_strecha
+from gcn_match_ros.detect import extract_features
 from gcn_match_ros.problem import load_problem
 
 from conftest import look_at

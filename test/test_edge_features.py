@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.edge_features import EDGE_FEATURES, RANK_CAP, EdgeConfig, _triangle_support, candidate_edges
-from gcn_match_ros.graph import normalize_descriptors
+from gcn_match_ros.edges.candidates import EDGE_FEATURES, RANK_CAP, EdgeConfig, _triangle_support, candidate_edges
+from gcn_match_ros.descriptors import normalize_descriptors
 
 from conftest import permuted_views_problem
 
@@ -80,7 +80,7 @@ def test_no_candidates_for_single_keypoint_views():
 def test_geometry_falls_back_to_mutual_seeds_when_the_ratio_test_leaves_too_few():
     """Generated SIFT-like descriptors fail Lowe's ratio test almost everywhere; the two-view
     models are then fitted on mutual nearest neighbours, so every view pair still gets one."""
-    from gcn_match_ros import synthetic
+    from gcn_match_ros.data import synthetic
 
     problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([5, 0]))
     es = candidate_edges(problem)

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.graph import GraphConfig, build_graph, normalize_descriptors
+from gcn_match_ros.descriptors import normalize_descriptors
+from gcn_match_ros.graph import GraphConfig, build_graph
 from gcn_match_ros.problem import Problem
 
 from conftest import permuted_views_problem

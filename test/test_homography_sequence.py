@@ -3,8 +3,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gcn_match_ros.datasets import DatasetError, load_scene, make_problem
-from gcn_match_ros.homography_sequence import (SequenceConfig, homography_sequence, source_image, view_quads,
+from gcn_match_ros.data.convert import make_problem
+from gcn_match_ros.data.scenes import DatasetError, load_scene
+from gcn_match_ros.data.homography_sequence import (SequenceConfig, homography_sequence, source_image, view_quads,
                                                view_size, write_sequence)
 
 # geometry only: no photometric change, so views can be compared pixel by pixel

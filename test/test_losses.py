@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros.features import calibrated_points
-from gcn_match_ros.losses import (epipolar_loss, epipolar_residuals, essential_from_poses,
-                                  reconstruction_loss, skew)
+from gcn_match_ros.node_features import calibrated_points
+from gcn_match_ros.geometry import epipolar_residuals, essential_from_poses, skew
+from gcn_match_ros.learn.losses import epipolar_loss, reconstruction_loss
 from gcn_match_ros.problem import Problem
 
 D64 = torch.float64

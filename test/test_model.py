@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros.features import FeatureConfig, feature_dim, node_features
+from gcn_match_ros.node_features import FeatureConfig, feature_dim, node_features
 from gcn_match_ros.graph import GraphConfig, build_graph
-from gcn_match_ros.losses import reconstruction_loss
-from gcn_match_ros.model import (GCN, CheckpointError, GCNConfig, collate, embed_problem, gcn_norm,
-                                 graph_tensors, load_checkpoint, normalized_adjacency, save_checkpoint)
+from gcn_match_ros.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from gcn_match_ros.learn.losses import reconstruction_loss
+from gcn_match_ros.learn.model import GCN, GCNConfig, collate, embed_problem, gcn_norm, graph_tensors, normalized_adjacency
 from gcn_match_ros.problem import Problem
 
 
@@ -261,7 +261,7 @@ def test_checkpoint_errors(tmp_path):
 # node features
 # ---------------------------------------------------------------------------
 def test_node_features_layout_and_fixed_width():
-    from gcn_match_ros.features import calibrated_points, normalized_positions
+    from gcn_match_ros.node_features import calibrated_points, normalized_positions
 
     kp = np.array([[150.0, 140.0], [50.0, 40.0], [0.0, 0.0], [100.0, 50.0]])
     desc = np.array([[3.0, 4.0], [1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])

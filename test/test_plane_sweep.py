@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from gcn_match_ros.datasets import label_photometric
-from gcn_match_ros.plane_sweep import SweepConfig, lift, project
+from gcn_match_ros.data.labels import label_photometric
+from gcn_match_ros.data.plane_sweep import SweepConfig, lift, project_in_front as project
 
 from conftest import look_at
 

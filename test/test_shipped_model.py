@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from gcn_match_ros.metrics import score_result
-from gcn_match_ros.model import load_checkpoint
+from gcn_match_ros.learn.checkpoint import load_checkpoint
 from gcn_match_ros.problem import load_problem
 from gcn_match_ros.rounding import is_cycle_consistent
 from gcn_match_ros.solvers import get_solver
@@ -38,7 +38,8 @@ def test_shipped_models_load_weights_only(kind):
 
 @pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason="shared data not available")
 def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(one_torch_thread):
-    from gcn_match_ros.datasets import load_scene, make_problem
+    from gcn_match_ros.data.convert import make_problem
+    from gcn_match_ros.data.scenes import load_scene
 
     scene = load_scene(DATA, "oxford/graf")  # Oxford: never trained on
     orb = make_problem(scene, (0, 1, 2), "orb", 500)
@@ -85,7 +86,7 @@ def test_shipped_model_beats_nn_on_held_out_and_is_cycle_consistent():
 @pytest.mark.parametrize("preset", ["rome16k", "partial"])
 def test_shipped_model_beats_mutual_nn_on_generated_scenes(one_torch_thread, preset):
     """Mean F1 over three generated scenes with seeds no training stream used (training: [0, k])."""
-    from gcn_match_ros import synthetic
+    from gcn_match_ros.data import synthetic
 
     f_gcn, f_nn = [], []
     for seed in range(3):
@@ -112,8 +113,8 @@ def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descr
     """Views of 8 keypoints: too few for geometric verification (MIN_SEEDS), and the edge head,
     trained on verifiable pairs, scores every edge low. The gcn solver then also keeps nn's
     matches on those view pairs, so it scores as nn does instead of matching nothing."""
-    from gcn_match_ros import synthetic
-    from gcn_match_ros.geometry_verify import MIN_SEEDS
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.verify import MIN_SEEDS
 
     config = dataclasses.replace(synthetic.preset("easy", 3, descriptor), n_points=8)
     f = {"gcn": [], "gcn:descriptor_fallback=false": [], "nn": []}

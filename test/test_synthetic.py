@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from gcn_match_ros.problem import Problem, load_problem
-from gcn_match_ros.synthetic import (
-    PAPER_SYNTHETIC_ROWS, SceneConfig, easy, graph_outlier_rate, mutual_nn_prf, partial,
-    permutation_noise_problem, random_scene_problem, rome16k, sift_normalize, write_problems)
+from gcn_match_ros.data.permutation_noise import PAPER_SYNTHETIC_ROWS, graph_outlier_rate, permutation_noise_problem
+from gcn_match_ros.data.synthetic import (SceneConfig, easy, mutual_nn_prf, partial, random_scene_problem, rome16k,
+                                          sift_normalize, write_problems)
 
 V_MAX = 1000
 PROBLEM_KEYS = ("view_offsets", "keypoints", "descriptors", "scales", "orientations", "K", "R", "t",
@@ -217,7 +217,7 @@ def test_binary_descriptors_are_orb_like_codes():
     prob = random_scene_problem(rome16k(3, descriptor_kind="binary", distractor_fraction=0.3), 5)
     d = prob.descriptors
     assert d.shape[1] == 256 and set(np.unique(d)) == {0.0, 1.0}
-    from gcn_match_ros.features import descriptor_kind
+    from gcn_match_ros.descriptors import descriptor_kind
     assert descriptor_kind(d) == (256, True)  # the gcn solver would pick the ORB model
     # two observations of a point differ in each bit with probability 2 f (1 - f), f = 0.28;
     # unrelated codes (distractors) in half of the bits

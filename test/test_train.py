@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros import model as model_mod
-from gcn_match_ros.features import feature_dim
-from gcn_match_ros.model import GCN, CheckpointError, GCNConfig, load_checkpoint, save_checkpoint
+from gcn_match_ros.learn import checkpoint as checkpoint_mod
+from gcn_match_ros.node_features import feature_dim
+from gcn_match_ros.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from gcn_match_ros.learn.model import GCN, GCNConfig
 from gcn_match_ros.problem import Problem, save_problem
-from gcn_match_ros.train import (ProblemFileSource, SyntheticSource, TrainConfig, evaluate, make_batch,
-                                 make_sample, train, train_step)
+from gcn_match_ros.learn.config import TrainConfig
+from gcn_match_ros.learn.objective import evaluate, make_batch, make_sample, train_step
+from gcn_match_ros.learn.sources import ProblemFileSource, SyntheticSource
+from gcn_match_ros.learn.train import train
 
 D = 8
 MODEL = GCNConfig(in_dim=feature_dim(D), widths=(16, 16, 16, 16), out_dim=16, groups=4, skip_layers=(2, 4))
@@ -72,7 +75,7 @@ def test_sample_batch_and_step():
 def test_wrapped_gcn_with_edge_head_is_refused():
     import dataclasses
 
-    from gcn_match_ros.edge_features import EDGE_FEATURES
+    from gcn_match_ros.edges.candidates import EDGE_FEATURES
 
     class Wrapper(torch.nn.Module):  # stands in for DistributedDataParallel(GCN)
         def __init__(self, module):
@@ -174,7 +177,7 @@ def _failing_save(monkeypatch, should_fail):
             raise OSError("disk full")  # ... then the write fails
         return real(obj, f, *args, **kwargs)
 
-    monkeypatch.setattr(model_mod.torch, "save", fake)
+    monkeypatch.setattr(checkpoint_mod.torch, "save", fake)
 
 
 def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):

@@ -6,13 +6,18 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros import bags, cli, synthetic
-from gcn_match_ros.bag_source import (BagSource, bag_scene, check_disjoint_scenes, node_window_config,
-                                      split_by_scene, write_problems_bag)
-from gcn_match_ros.features import feature_dim
-from gcn_match_ros.model import GCNConfig, load_checkpoint
-from gcn_match_ros.train import (ShardedSource, TrainConfig, data_source, make_batch, make_sample, train,
-                                 train_step)
+from gcn_match_ros import cli
+from gcn_match_ros.bags.contents import read_bag
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.bags.make import write_problems_bag
+from gcn_match_ros.bags.source import BagSource, bag_scene, check_disjoint_scenes, node_window_config, split_by_scene
+from gcn_match_ros.node_features import feature_dim
+from gcn_match_ros.learn.checkpoint import load_checkpoint
+from gcn_match_ros.learn.model import GCNConfig
+from gcn_match_ros.learn.config import TrainConfig
+from gcn_match_ros.learn.objective import make_batch, make_sample, train_step
+from gcn_match_ros.learn.sources import ShardedSource, data_source
+from gcn_match_ros.learn.train import train
 from gcn_match_ros.windowing import WindowAssembler, window_problem
 
 D = 16
@@ -50,7 +55,7 @@ def test_bag_source_windows_equal_assembler_on_bag_frames(tiny_bags):
     train_bag, _, probs = tiny_bags
     src = BagSource(train_bag, shuffle=False)
     # the node's assembly, by hand: frames in bag order into a WindowAssembler
-    contents = bags.read_bag(train_bag)
+    contents = read_bag(train_bag)
     asm = WindowAssembler(node_window_config(contents.cameras, descriptor_dim=D))
     windows = [w for f in contents.frames_in_order() for w in asm.add(f)] + asm.flush()
     assert len(src) == len(windows) == len(probs)
@@ -72,7 +77,7 @@ def test_bag_source_windows_equal_assembler_on_bag_frames(tiny_bags):
 
 
 def _tiny_model():
-    from gcn_match_ros.model import GCN
+    from gcn_match_ros.learn.model import GCN
 
     torch.manual_seed(0)
     return GCN(MODEL)
@@ -154,7 +159,7 @@ def test_gcn_match_train_end_to_end_synth(tmp_path, capsys):
 
 
 def test_orb_like_generated_scenes_from_cli_and_data_specs(tmp_path, capsys):
-    from gcn_match_ros.features import descriptor_kind
+    from gcn_match_ros.descriptors import descriptor_kind
     from gcn_match_ros.problem import load_problem
 
     assert cli.main(["synth", "-o", str(tmp_path), "--preset", "partial", "--descriptor", "binary",

@@ -13,12 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros import synthetic
-from gcn_match_ros.features import feature_dim
-from gcn_match_ros.model import GCN, GCNConfig, load_checkpoint
-from gcn_match_ros.edge_features import EDGE_FEATURES
-from gcn_match_ros.train import (ShardedSource, SyntheticSource, TrainConfig, TrainingObjective, make_batch,
-                                 make_sample, train, train_step)
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.node_features import feature_dim
+from gcn_match_ros.learn.checkpoint import load_checkpoint
+from gcn_match_ros.learn.model import GCN, GCNConfig
+from gcn_match_ros.edges.candidates import EDGE_FEATURES
+from gcn_match_ros.learn.config import TrainConfig
+from gcn_match_ros.learn.objective import TrainingObjective, make_batch, make_sample, train_step
+from gcn_match_ros.learn.sources import ShardedSource, SyntheticSource
+from gcn_match_ros.learn.train import train
 
 D = 16
 MODEL = GCNConfig(in_dim=feature_dim(D), widths=(16, 16, 16, 16), out_dim=16, groups=4, skip_layers=(2, 4))
@@ -150,7 +153,7 @@ def test_torchrun_cli(tmp_path):
     run = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1", GLOO_SOCKET_IFNAME="lo", PYTHONPATH=str(REPO))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes=1", "--nproc_per_node=2",
-           "--master_addr=127.0.0.1", f"--master_port={_free_port()}", "-m", "gcn_match_ros.train_ddp",
+           "--master_addr=127.0.0.1", f"--master_port={_free_port()}", "-m", "gcn_match_ros.cli", "train",
            "--train", "synth:easy:3", "-o", str(run), "--steps", "3", "--batch", "1", "--model-config", str(cfg)]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -158,8 +161,3 @@ def test_torchrun_cli(tmp_path):
     for name in ("checkpoint.pt", "best.pt", "history.json", "curves.png"):
         assert (run / name).is_file(), name
     assert [h["step"] for h in json.loads((run / "history.json").read_text())["train"]] == [1, 2, 3]
-    # outside torchrun: a one-line explanation
-    proc = subprocess.run([sys.executable, "-m", "gcn_match_ros.train_ddp", "--train", "synth:easy"],
-                          cwd=REPO, env={k: v for k, v in env.items() if k not in ("RANK", "WORLD_SIZE")},
-                          capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2 and "torchrun" in proc.stderr and proc.stderr.count("\n") == 1

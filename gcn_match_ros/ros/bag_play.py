@@ -32,7 +32,8 @@ import time
 from pathlib import Path
 from typing import Dict, Optional, Sequence
 
-from gcn_match_ros import bags
+from ..bags.io import BagError, BagInfo, bag_info, iter_raw, restamp_cdr
+from ..bags.typesys import has_header, typestore
 
 NODE_NAME = "bag_play"
 
@@ -94,8 +95,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     # The bag first: a missing/truncated bag fails fast, before any ROS set-up.
     try:
-        info = bags.bag_info(args.bag)
-    except bags.BagError as exc:
+        info = bag_info(args.bag)
+    except BagError as exc:
         return _fail(str(exc))
     topics = dict(info.topics)
     if args.topics:
@@ -130,7 +131,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         else:
             qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=args.qos_depth,
                              reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
-        store = bags.typestore()
+        store = typestore()
         pubs: Dict[str, object] = {}
         restamp: Dict[str, bool] = {}
         for topic, msgtype in sorted(topics.items()):
@@ -140,7 +141,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 log.warning(f"skipping {topic}: no Python message class for {msgtype} ({exc})")
                 continue
             pubs[topic] = node.create_publisher(cls, topic, qos)
-            restamp[topic] = args.restamp and bags.has_header(msgtype, store)
+            restamp[topic] = args.restamp and has_header(msgtype, store)
         if not pubs:
             return _fail(f"{args.bag}: none of the bag's message types can be published here")
         total = sum(info.counts.get(t, 0) for t in pubs)
@@ -178,7 +179,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 if pub.get_subscription_count() and not pub.wait_for_all_acked(Duration(seconds=left)):
                     log.warning(f"{topic}: not all messages acknowledged within {args.wait_for_all_acked:g} s")
         return 0
-    except bags.BagError as exc:
+    except BagError as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
         return 0
@@ -190,7 +191,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         rclpy.try_shutdown(context=context)
 
 
-def _play(args, info: bags.BagInfo, pubs: Dict[str, object], restamp: Dict[str, bool],
+def _play(args, info: BagInfo, pubs: Dict[str, object], restamp: Dict[str, bool],
           stop: threading.Event, log) -> int:
     """Publish the bag (repeatedly with --loop); returns the number of messages published."""
     from tqdm import tqdm
@@ -207,7 +208,7 @@ def _play(args, info: bags.BagInfo, pubs: Dict[str, object], restamp: Dict[str, 
                 bar.reset(total=total)
             t0 = time.monotonic()
             offset = time.time_ns() - info.start_ns
-            for topic, _, log_ns, raw in bags.iter_raw(args.bag, list(pubs)):
+            for topic, _, log_ns, raw in iter_raw(args.bag, list(pubs)):
                 due = t0 + (log_ns - info.start_ns) * 1e-9 / args.rate
                 delay = due - time.monotonic()
                 if delay > 0 and stop.wait(delay):
@@ -216,7 +217,7 @@ def _play(args, info: bags.BagInfo, pubs: Dict[str, object], restamp: Dict[str, 
                     break
                 if restamp[topic]:
                     try:
-                        raw = bags.restamp_cdr(raw, offset)
+                        raw = restamp_cdr(raw, offset)
                     except ValueError as exc:
                         log.warning(f"{topic}: not restamped ({exc})", throttle_duration_sec=5.0)
                 pubs[topic].publish(bytes(raw))

@@ -26,8 +26,9 @@ import time
 from pathlib import Path
 from typing import Dict, Optional, Sequence
 
-from gcn_match_ros import bags
-from gcn_match_ros.ros.bag_play import msg_class
+from ..bags.io import STORAGES, BagError, BagWriter
+from ..bags.typesys import ensure_type
+from .bag_play import msg_class
 
 NODE_NAME = "bag_record"
 _IGNORED = ("/rosout", "/parameter_events")
@@ -42,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     what.add_argument("--topics", nargs="+", metavar="TOPIC", help="topics to record")
     what.add_argument("-a", "--all", action="store_true",
                       help="every topic that appears (except /rosout, /parameter_events)")
-    p.add_argument("-s", "--storage", choices=bags.STORAGES, default="mcap", help="storage of a bag directory")
+    p.add_argument("-s", "--storage", choices=STORAGES, default="mcap", help="storage of a bag directory")
     p.add_argument("--qos", choices=("auto", "reliable", "sensor-data"), default="auto")
     p.add_argument("--qos-depth", type=int, default=100, help="keep-last depth of the subscriptions")
     p.add_argument("-d", "--duration", type=float, default=0.0, metavar="S",
@@ -102,9 +103,9 @@ class Recorder:
                 log.warning(f"{topic} has several types {types}; recording {msgtype}")
             try:
                 cls = msg_class(msgtype)
-                bags.ensure_type(self.writer.store, msgtype)
+                ensure_type(self.writer.store, msgtype)
                 self.writer.connection(topic, msgtype)
-            except (ImportError, bags.BagError) as exc:
+            except (ImportError, BagError) as exc:
                 log.error(f"cannot record {topic} [{msgtype}]: {exc}")
                 self.skipped.add(topic)
                 continue
@@ -150,8 +151,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     try:
-        writer = bags._BagWriter(args.output, args.storage, compress=not args.no_compress)
-    except (bags.BagError, OSError, ValueError) as exc:
+        writer = BagWriter(args.output, args.storage, compress=not args.no_compress)
+    except (BagError, OSError, ValueError) as exc:
         return _fail(str(exc))
     context = Context()
     rclpy.init(args=["bag_record"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)

@@ -11,7 +11,7 @@
 Array fields are read with ``np.frombuffer`` (no copy, no per-element Python work) and
 filled with ``array.array(typecode, ndarray.tobytes())``. Binary descriptors (ORB, ...)
 travel packed (``np.packbits``, MSB first) and are unpacked to 0/1 float32 columns in the
-:class:`Frame`, as :func:`gcn_match_ros.datasets.extract_features` gives them to the trainer.
+:class:`Frame`, as :func:`gcn_match_ros.detect.extract_features` gives them to the trainer.
 
 A malformed ``Keypoints`` message raises :class:`~gcn_match_ros.windowing.FrameError`
 whose ``reason`` is a short counter key (``count_mismatch``, ``bad_shape``,
@@ -29,7 +29,7 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
-from ..bags import HARD_MAX_KEYPOINTS, frame_from_keypoints_msg, message_array
+from ..bags.codec import HARD_MAX_KEYPOINTS, frame_from_keypoints_msg, message_array
 from ..problem import Result
 from ..rounding import relabel_tracks
 from ..windowing import Frame, FrameError
@@ -93,7 +93,7 @@ def seconds_to_stamp(seconds: float) -> Time:
 # ---------------------------------------------------------------------------------------
 def keypoints_to_frame(msg: Keypoints, camera_id: Optional[str] = None,
                        max_count: int = HARD_MAX_KEYPOINTS) -> Frame:
-    """A ``Keypoints`` message as a :class:`Frame`: :func:`gcn_match_ros.bags.frame_from_keypoints_msg`
+    """A ``Keypoints`` message as a :class:`Frame`: :func:`gcn_match_ros.bags.codec.frame_from_keypoints_msg`
     (one decoder for live messages and bags; it raises :class:`FrameError` with a counter reason)."""
     return frame_from_keypoints_msg(msg, camera_id=camera_id, max_count=max_count)
 

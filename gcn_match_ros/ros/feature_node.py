@@ -8,7 +8,7 @@ camera in the camera's namespace, e.g.::
 
     python -m gcn_match_ros.ros.feature_node --ros-args -r __ns:=/cam0 -p camera_id:=cam0
 
-Detection is :func:`gcn_match_ros.datasets.extract_features` — the same as the offline
+Detection is :func:`gcn_match_ros.detect.extract_features` — the same as the offline
 data sets the model is trained on (one keypoint per location, strongest response first;
 ORB descriptors travel as packed bits). The callback handles the newest image only: the
 subscription keeps one image (sensor-data QoS, depth 1), so a slow detector skips frames
@@ -35,7 +35,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from gcn_match_msgs.msg import Keypoints
 
-from ..datasets import extract_features
+from ..detect import extract_features
 from ..windowing import Frame
 from .conversions import frame_to_keypoints, stamp_to_seconds
 

@@ -49,7 +49,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from .. import solvers as _solvers
-from ..features import describe_descriptor_kind, descriptor_kind
+from ..descriptors import describe_descriptor_kind, descriptor_kind
 from ..graph import build_graph
 from ..problem import Problem
 from ..solvers import available_solvers, get_solver, parse_method

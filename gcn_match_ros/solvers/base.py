@@ -22,23 +22,12 @@ from typing import Any, ClassVar, Dict, Optional, Type
 import numpy as np
 import torch
 
-from ..graph import CorrespondenceGraph, GraphConfig, build_graph
+from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..problem import Problem, Result
 from ..rounding import greedy_tracks
 
 __all__ = ["SoftMatches", "Solver", "SolverConfig", "register", "get_solver", "available_solvers",
            "parse_method", "GRAPH_PRESETS"]
-
-#: Named input graphs; solver settings select one with ``graph=<name>``.
-GRAPH_PRESETS: Dict[str, GraphConfig] = {
-    "knn4": GraphConfig.paper(4),
-    "knn8": GraphConfig.paper(8),
-    "mutual": GraphConfig.mutual_nn(),
-    "ratio0.8": GraphConfig.mutual_nn(0.8),
-    "mutual-soft": GraphConfig(k=1, mutual=True, rescale="none"),
-    "ratio0.8-soft": GraphConfig(k=1, mutual=True, ratio=0.8, rescale="none"),
-}
-
 
 @dataclasses.dataclass
 class SoftMatches:

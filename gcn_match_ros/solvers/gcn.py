@@ -16,10 +16,16 @@ from typing import Optional, Tuple
 import numpy as np
 import torch
 
-from ..features import describe_descriptor_kind, descriptor_kind, feature_dim
-from ..graph import CorrespondenceGraph, GraphConfig, build_graph
+from ..descriptors import describe_descriptor_kind, descriptor_kind
+from ..edges.candidates import candidate_edges
+from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
+from ..edges.verify import MIN_SEEDS
+from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
+from ..learn.checkpoint import load_checkpoint
+from ..learn.model import embed_problem
+from ..node_features import feature_dim
 from ..problem import Problem, Result
-from .base import GRAPH_PRESETS, SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig, register
 from .nn import NNSolver
 
 __all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT", "SHIPPED_MODELS"]
@@ -45,7 +51,7 @@ class GCNSolverConfig(SolverConfig):
         device: torch device for the forward pass ("cpu", "cuda").
         descriptor_fallback: with an edge-scoring model, view pairs that geometric verification
             cannot check — one view has fewer keypoints than it needs seeds
-            (``geometry_verify.MIN_SEEDS``), as in a low-texture window — also get the ``nn``
+            (``edges.verify.MIN_SEEDS``), as in a low-texture window — also get the ``nn``
             solver's matches (mutual nearest neighbours passing the ratio test, scored by
             cosine). The head never saw such pairs in training and scores every edge of them
             low, so without this a low-texture window matches nothing. False: the head alone.
@@ -70,8 +76,6 @@ class GCNSolverConfig(SolverConfig):
 
 @functools.lru_cache(maxsize=4)
 def _load(path: str, device: str, mtime: float):
-    from ..model import load_checkpoint
-
     model, meta = load_checkpoint(path, map_location=device)
     return model.to(device).eval(), meta
 
@@ -143,23 +147,17 @@ class GCNSolver(Solver):
         return super().solve(problem, graph)
 
     def match(self, problem: Problem, graph: CorrespondenceGraph):
-        from ..model import embed_problem
-
         if problem.n_keypoints == 0:
             return SoftMatches.from_graph(graph), None
         with torch.inference_mode():
             emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
                                    graph=graph)
-            if getattr(self.model, "edge_head", None) is not None:
+            if has_edge_head(self.model):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
-                from ..edge_head import edge_config_of, edge_inputs
-
-                es, _ = edge_inputs(problem, edge_config_of(self.model))
+                es = candidate_edges(problem, edge_config_of(self.model))
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
-                logits = self.model.score_edges(torch.from_numpy(emb), torch.from_numpy(es.rows),
-                                                torch.from_numpy(es.cols), torch.from_numpy(es.features))
-                soft = SoftMatches(es.rows, es.cols, torch.sigmoid(logits).numpy())
+                soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
                 if self.config.descriptor_fallback and edge_config_of(self.model).geometry:
                     soft = _with_descriptor_matches(problem, soft)
                 return soft, None
@@ -169,11 +167,9 @@ class GCNSolver(Solver):
 
 def _with_descriptor_matches(problem: Problem, soft: SoftMatches) -> SoftMatches:
     """``soft`` plus the ``nn`` solver's matches (mutual NN, ratio 0.8, score = cosine) on every
-    view pair with a view of fewer than ``geometry_verify.MIN_SEEDS`` keypoints, the larger score
+    view pair with a view of fewer than ``edges.verify.MIN_SEEDS`` keypoints, the larger score
     where both have a pair (:attr:`GCNSolverConfig.descriptor_fallback`). Unchanged when no view
     is that small."""
-    from ..geometry_verify import MIN_SEEDS
-
     small = problem.view_sizes < MIN_SEEDS
     if not small.any():
         return soft

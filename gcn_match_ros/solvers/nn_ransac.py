@@ -1,7 +1,7 @@
 """Honest baseline for test-time geometry: mutual NN + ratio 0.8, verified per view pair.
 
 The same pose-free two-view verification as the learned ``gcn`` solver's features
-(:mod:`geometry_verify`: USAC-MAGSAC homography and fundamental matrix on the confident
+(:mod:`gcn_match_ros.edges.verify`: USAC-MAGSAC homography and fundamental matrix on the confident
 pairs, H chosen when it explains the seeds about as well as F); a nearest-neighbour pair
 is kept when its residual under the selected model is below ``px`` pixels (pairs of a view
 pair where no model could be fitted are kept). ``guided=true`` also adds, like the
@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from ..edge_features import EDGE_FEATURES, EdgeConfig, candidate_edges
+from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from .base import SoftMatches, Solver, SolverConfig, register

@@ -29,7 +29,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..graph import CorrespondenceGraph, normalize_descriptors
+from ..descriptors import normalize_descriptors
+from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from ..rounding import relabel_tracks
 from ._sync import check_node_limit, view_index_of

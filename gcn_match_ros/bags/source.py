@@ -2,13 +2,13 @@
 
 Core module (numpy, rosbags through :mod:`gcn_match_ros.bags`; never rclpy).
 
-:class:`BagSource` reads each bag once (:func:`bags.read_bag`), feeds its frames in bag
+:class:`BagSource` reads each bag once (:func:`.contents.read_bag`), feeds its frames in bag
 order to a :class:`windowing.WindowAssembler` exactly as the matcher node does
-(:meth:`bags.BagContents.windows`), and turns every window into a :class:`Problem`
+(:meth:`.contents.BagContents.windows`), and turns every window into a :class:`Problem`
 (:func:`windowing.window_problem`): keypoints, descriptors, scales, orientations, K from
 ``camera_info``, world->camera R, t from ``/<cam>/pose`` (so the epipolar loss applies
-to posed bags) and ``gt_track`` from ``/<cam>/gt_labels`` (:func:`bags.window_labels`).
-The windows are then served like :class:`train.ProblemFileSource` serves files: an
+to posed bags) and ``gt_track`` from ``/<cam>/gt_labels`` (:func:`.contents.window_labels`).
+The windows are then served like :class:`gcn_match_ros.learn.sources.ProblemFileSource` serves files: an
 endless, seeded, per-epoch shuffled and seekable stream.
 
 Validation must use *other scenes* than training (consecutive windows of one scene share
@@ -24,12 +24,12 @@ from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from . import bags
-from .problem import Problem
-from .windowing import Frame, WindowConfig, window_problem
+from ..problem import Problem
+from ..windowing import WindowConfig, window_problem
+from .contents import BagContents, read_bag, window_labels
 
 __all__ = ["BagSource", "BAG_SUFFIXES", "is_bag_path", "bag_files", "bag_scene", "node_window_config",
-           "split_by_scene", "check_disjoint_scenes", "write_problems_bag"]
+           "split_by_scene", "check_disjoint_scenes"]
 
 #: File suffixes of single-file bags (a rosbag2 *directory* has a ``metadata.yaml``).
 BAG_SUFFIXES = (".mcap", ".db3")
@@ -82,7 +82,7 @@ def bag_files(paths: Union[PathLike, Sequence[PathLike]]) -> List[Path]:
     return out
 
 
-def _scene_of(contents: "bags.BagContents") -> str:
+def _scene_of(contents: BagContents) -> str:
     for srcs in contents.sources.values():
         for s in srcs:
             if s:
@@ -99,7 +99,7 @@ def _scene_of(contents: "bags.BagContents") -> str:
 def bag_scene(path: PathLike) -> str:
     """The scene a bag shows: the folder of the images named in ``KeypointLabels.source``
     (``oxford/graf/img1.png`` -> ``oxford/graf``); bags without it: the file name without suffix."""
-    return _scene_of(bags.read_bag(path, progress=False))
+    return _scene_of(read_bag(path, progress=False))
 
 
 def split_by_scene(paths: Union[PathLike, Sequence[PathLike]], val_scenes: Optional[Sequence[str]] = None,
@@ -160,7 +160,7 @@ class BagSource:
         window_frames: (bag index, [(camera id, stamp), ...]) of every window;
 
     Raises:
-        ValueError (``bags.BagError`` included): unreadable bag, a bag without windows,
+        ValueError (:class:`.io.BagError` included): unreadable bag, a bag without windows,
         or descriptor dimensions that differ between bags.
     """
 
@@ -176,7 +176,7 @@ class BagSource:
         self.window_frames: List[Tuple[int, List[Tuple[str, float]]]] = []
         dims: Dict[int, Path] = {}
         for b, path in enumerate(self.files):
-            contents = bags.read_bag(path, progress=progress)
+            contents = read_bag(path, progress=progress)
             self.scenes.append(_scene_of(contents))
             config = window_config or node_window_config(contents.cameras)
             n_before = len(self.problems)
@@ -185,7 +185,7 @@ class BagSource:
                     continue
                 problem = window_problem(frames, name=f"{_stem(path)}:{len(self.problems) - n_before}")
                 if labels is not None:
-                    problem.gt_track = bags.window_labels(labels)
+                    problem.gt_track = window_labels(labels)
                     problem.validate()
                 self.problems.append(problem)
                 self.window_frames.append((b, [(f.camera_id, f.stamp) for f in frames]))
@@ -233,41 +233,3 @@ class BagSource:
 def _stem(path: Path) -> str:
     name = path.name
     return name[: -len(path.suffix)] if path.suffix.lower() in BAG_SUFFIXES else name
-
-
-# ---------------------------------------------------------------------------
-# Problems -> bag (tests, demos)
-# ---------------------------------------------------------------------------
-def write_problems_bag(path: PathLike, problems: Sequence[Problem], rate_hz: float = 2.0, stagger: float = 0.002,
-                       start_time: float = 1_700_000_000.0, descriptor_name: str = "sift",
-                       storage: str = "mcap") -> Path:
-    """Write problems as a bag of a rig: problem k is capture step k (stamp
-    ``start_time + k / rate_hz``), its view j is camera ``cam<j>`` (stamped ``j * stagger``
-    later), with K (``camera_info``), R, t (``/<cam>/pose``) and labels (``gt_track``, made
-    scene-global by offsetting each problem's ids past the previous ones') when present.
-    Replaying it into the node (or :class:`BagSource`) gives back one window per problem.
-    """
-    V = max(p.n_views for p in problems)
-    cams = [f"cam{j}" for j in range(V)]
-    frames: Dict[str, List[Frame]] = {c: [] for c in cams}
-    labels: Dict[str, List[Optional[np.ndarray]]] = {c: [] for c in cams}
-    base_ns = bags.stamp_to_ns(start_time)
-    offset = 0
-    for k, p in enumerate(problems):
-        gt = None
-        if p.gt_track is not None:
-            gt = np.where(p.gt_track >= 0, p.gt_track + offset, p.gt_track)
-            offset += int(p.gt_track.max(initial=-1)) + 1
-        for j in range(p.n_views):
-            s = p.view_slice(j)
-            opt = (lambda a: None if a is None else a[s])  # noqa: E731
-            stamp = bags.ns_to_stamp(base_ns + int(round(k * 1e9 / rate_hz)) + j * int(round(stagger * 1e9)))
-            frames[cams[j]].append(Frame(
-                camera_id=cams[j], stamp=stamp, keypoints=p.keypoints[s], descriptors=p.descriptors[s],
-                frame_id=f"{cams[j]}_optical_frame", scales=opt(p.scales), orientations=opt(p.orientations),
-                K=None if p.K is None else p.K[j],
-                image_size=None if p.image_size is None else tuple(int(x) for x in p.image_size[j]),
-                R=None if p.R is None else p.R[j], t=None if p.t is None else p.t[j]))
-            labels[cams[j]].append(None if gt is None else gt[s])
-    return bags.write_scene_bag(path, frames, labels, storage=storage, descriptor_name=descriptor_name,
-                                label_method="problems")

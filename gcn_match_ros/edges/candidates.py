@@ -4,7 +4,7 @@ For every pair of views (i, j) the candidates are
 
 - each keypoint's top-``k`` descriptor neighbours in the other view (both directions), and
 - optionally geometry-guided candidates: a pose-free two-view model (homography and
-  fundamental matrix, OpenCV USAC-MAGSAC, :mod:`geometry_verify`) is fitted on the
+  fundamental matrix, OpenCV USAC-MAGSAC, :mod:`.verify`) is fitted on the
   confident pairs (mutual nearest neighbours passing Lowe's ratio 0.8); every keypoint
   then also proposes the keypoint of the other view nearest to its homography transfer
   and the descriptor-best keypoint within ``guide_px`` of its epipolar line.
@@ -20,17 +20,19 @@ training and at test time alike.
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, Optional
+from typing import Dict, List
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 import torch
 
-from .graph import normalize_descriptors
-from .problem import Problem
+from ..descriptors import normalize_descriptors
+from ..geometry import epipolar_distance_matrix, transfer
+from ..problem import Problem
+from .verify import MIN_SEEDS, PairModel, fit_pair, residuals
 
-__all__ = ["EdgeConfig", "EdgeSet", "candidate_edges", "EDGE_FEATURES"]
+__all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "EDGE_FEATURES", "RANK_CAP"]
 
 EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
                  "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
@@ -72,6 +74,31 @@ def _squash(d: np.ndarray) -> np.ndarray:
     return np.log1p(np.minimum(d, 1e3)) / np.log1p(1e3)
 
 
+@dataclasses.dataclass
+class PairCandidates:
+    """The candidate edges of one view pair (a, b), local indices, and their per-pair features.
+
+    Shapes (M,): ea, eb int64 indices into views a and b; cosine; ratio_a, ratio_b (Lowe ratio
+    from each side, capped at 1.5); rank_a, rank_b (capped at :data:`RANK_CAP`); mutual,
+    confident, guided bool; res_h, res_f pixel residuals under the pair's H and F (inf without).
+    model_kind: 0 no two-view model, 1 fundamental matrix, 2 homography (planar).
+    """
+
+    ea: np.ndarray
+    eb: np.ndarray
+    cosine: np.ndarray
+    ratio_a: np.ndarray
+    ratio_b: np.ndarray
+    rank_a: np.ndarray
+    rank_b: np.ndarray
+    mutual: np.ndarray
+    confident: np.ndarray
+    res_h: np.ndarray
+    res_f: np.ndarray
+    model_kind: float
+    guided: np.ndarray
+
+
 def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> EdgeSet:
     """Candidate edges of ``problem`` with their features (see the module docstring)."""
     desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
@@ -79,27 +106,32 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
     V = problem.n_views
     kp = problem.keypoints.astype(np.float64)
     n = problem.n_keypoints
-    parts = []
+    parts: List[PairCandidates] = []
+    starts = []
     for i in range(V):
         a0, a1 = int(offs[i]), int(offs[i + 1])
         for j in range(i + 1, V):
             b0, b1 = int(offs[j]), int(offs[j + 1])
             if a1 - a0 < 2 or b1 - b0 < 2:
                 continue
-            ea, eb, *rest = _pair_edges(desc[a0:a1], desc[b0:b1], kp[a0:a1], kp[b0:b1], config)
-            parts.append((ea + a0, eb + b0, *rest))
+            parts.append(_pair_edges(desc[a0:a1], desc[b0:b1], kp[a0:a1], kp[b0:b1], config))
+            starts.append((a0, b0))
     if not parts:
         z = np.zeros(0, np.int64)
         return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool))
-    cols = list(zip(*parts))
-    rows = np.concatenate(cols[0]); colsi = np.concatenate(cols[1])
-    s, ra, rb = (np.concatenate(c) for c in cols[2:5])
-    rka, rkb = (np.concatenate(c).astype(np.float64) for c in cols[5:7])
-    mutual, conf = np.concatenate(cols[7]), np.concatenate(cols[8])
-    rh, rf = np.concatenate(cols[9]), np.concatenate(cols[10])
-    hasm = np.concatenate([np.full(len(p[0]), p[11]) for p in parts])
+
+    def cat(field: str) -> np.ndarray:
+        return np.concatenate([getattr(p, field) for p in parts])
+
+    rows = np.concatenate([p.ea + a0 for p, (a0, _) in zip(parts, starts)])
+    colsi = np.concatenate([p.eb + b0 for p, (_, b0) in zip(parts, starts)])
+    s, ra, rb = cat("cosine"), cat("ratio_a"), cat("ratio_b")
+    rka, rkb = cat("rank_a").astype(np.float64), cat("rank_b").astype(np.float64)
+    mutual, conf = cat("mutual"), cat("confident")
+    rh, rf = cat("res_h"), cat("res_f")
+    hasm = np.concatenate([np.full(len(p.ea), p.model_kind) for p in parts])
     has, planar = (hasm > 0).astype(np.float64), (hasm == 2).astype(np.float64)
-    guided = np.concatenate(cols[12])
+    guided = cat("guided")
     view = problem.view_index
     tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool))
     tri_conf = _triangle_support(n, V, view, rows, colsi, conf)
@@ -109,11 +141,9 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
     return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
 
 
-def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig):
-    """Candidates of one view pair (local indices) and their per-pair features, in the order
-    ``candidate_edges`` concatenates them."""
-    from .geometry_verify import MIN_SEEDS, fit_pair, residuals
-
+def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: np.ndarray,
+                config: EdgeConfig) -> PairCandidates:
+    """Candidates of one view pair and their per-pair features."""
     na, nb = desc_a.shape[0], desc_b.shape[0]
     sim_t = desc_a @ desc_b.T
     sim = sim_t.numpy()
@@ -163,12 +193,12 @@ def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: 
     conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
     if model is not None:
         rh, rf = residuals(model, xa[ea], xb[eb])
-        has = 2.0 if model.planar else 1.0
+        kind = 2.0 if model.planar else 1.0
     else:
         rh = rf = np.full(ea.shape[0], np.inf)
-        has = 0.0
-    return (ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5),
-            np.minimum(rank_a, RANK_CAP), np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, has, g2)
+        kind = 0.0
+    return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
+                          np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2)
 
 
 def _dist(c: np.ndarray) -> np.ndarray:
@@ -176,10 +206,9 @@ def _dist(c: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(2 - 2 * c, 0))
 
 
-def _guided(sim, xa, xb, model, px):
+def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, px: float):
     """Geometry-guided candidates: nearest keypoint to the H transfer (both directions) and
     the descriptor-best keypoint within ``px`` of the epipolar line (both directions)."""
-    from .geometry_verify import transfer, epipolar_distance_matrix
     out_a, out_b = [], []
     if model.H is not None:
         # nearest keypoint to each transfer, within px (KD-trees: never an na x nb distance matrix)

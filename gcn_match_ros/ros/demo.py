@@ -1,6 +1,6 @@
 """End-to-end demo: a sample bag replayed into the matcher node, every window scored.
 
-``./run.sh demo`` (= ``python -m gcn_match_ros.demo``):
+``./run.sh demo`` (= ``python -m gcn_match_ros.ros.demo``):
 
 1. starts the matcher node as its own process (``python -m gcn_match_ros.ros.matcher_node``,
    parameters as ROS arguments; default solver ``gcn`` with the model shipped in the
@@ -35,7 +35,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CAMERAS = ("cam0", "cam1", "cam2")
 DEFAULT_BAG = "oxford_graf_sift.mcap"
 
@@ -62,7 +62,7 @@ def _find_bag(name: str) -> Optional[Path]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m gcn_match_ros.demo", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m gcn_match_ros.ros.demo", description=__doc__.split("\n\n")[0])
     p.add_argument("--bag", default=DEFAULT_BAG, help=f"bag file (path, or a name in bags/; default {DEFAULT_BAG})")
     p.add_argument("--solver", default="gcn", help="matching method, e.g. gcn, nn, spectral, 'nn:graph=mutual'")
     p.add_argument("--checkpoint", default="", help="GCN checkpoint (default: the model shipped in the package)")
@@ -150,10 +150,10 @@ def _key(camera_id: str, stamp) -> Tuple[str, int]:
 def score_window(msg, col: _Collector, contents) -> Optional[dict]:
     """P/R/F1 of one MatchWindow against the bag's ground-truth labels (scene-global point
     ids of each view's frame); None when a view's frame or labels are unknown."""
-    from .bags import window_labels
-    from .metrics import score_result
-    from .problem import Problem, Result
-    from .ros.conversions import match_window_to_arrays
+    from ..bags.contents import window_labels
+    from ..metrics import score_result
+    from ..problem import Problem, Result
+    from .conversions import match_window_to_arrays
 
     w = match_window_to_arrays(msg)
     labels, kps, sources = [], [], []
@@ -254,7 +254,7 @@ def _check_model(solver: str, checkpoint: str) -> Optional[str]:
     if not solver.split(":")[0].strip() == "gcn":
         return None
     try:
-        from .solvers.gcn import DEFAULT_CHECKPOINT
+        from ..solvers.gcn import DEFAULT_CHECKPOINT
     except ImportError as exc:
         return f"the gcn solver cannot be imported ({exc}); run with --solver nn to see the pipeline"
     path = Path(checkpoint) if checkpoint else Path(DEFAULT_CHECKPOINT)
@@ -281,8 +281,8 @@ def main(argv=None) -> int:
     if bag is None:
         _log(f"demo: error: bag '{args.bag}' not found (looked in {', '.join(str(d) for d in _bag_dirs())})")
         return 1
-    from .bags import BagError, read_bag
-    from .windowing import WindowConfig
+    from ..bags import BagError, read_bag
+    from ..windowing import WindowConfig
 
     try:
         contents = read_bag(bag, progress=False)
@@ -294,8 +294,8 @@ def main(argv=None) -> int:
     _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
          f"{expected} windows; solver {args.solver}")
 
-    from .ros import FASTDDS_PROFILE_ENV, use_large_shm
-    from .ros.spin import stop_node_process
+    from . import FASTDDS_PROFILE_ENV, use_large_shm
+    from .spin import stop_node_process
 
     env = dict(os.environ)
     use_large_shm(env)  # bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)

@@ -10,6 +10,7 @@ on each graph's rows):
 - :func:`epipolar_loss`: the paper's geometric term mean(S ∘ G) over cross-view pairs,
   with G the epipolar residual of the two keypoints under the known poses; one
   view-pair block at a time.
+- :func:`edge_loss`: the edge head's label-free loss on candidate edges of a posed problem.
 
 All functions are differentiable in E, work in float32 and float64, and accept
 ``view_offsets`` as a tensor, array or list of V+1 ints.
@@ -19,10 +20,12 @@ from __future__ import annotations
 from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["reconstruction_loss", "epipolar_loss", "epipolar_residuals", "essential_from_poses",
-           "skew"]
+from ..geometry import essential_from_poses
+
+__all__ = ["reconstruction_loss", "epipolar_loss", "edge_loss"]
 
 Offsets = Union[Tensor, Sequence[int]]
 
@@ -161,84 +164,8 @@ def reconstruction_loss(E: Tensor, edge_index: Tensor, edge_weight: Tensor, num_
 
 
 # ---------------------------------------------------------------------------
-# Epipolar geometry
+# Geometric losses (poses at training time only)
 # ---------------------------------------------------------------------------
-def skew(v: Tensor) -> Tensor:
-    """Cross-product matrix [v]ₓ, so that ``skew(v) @ w == cross(v, w)``.
-
-    Shapes: v (*, 3) -> (*, 3, 3).
-    """
-    if v.shape[-1] != 3:
-        raise ValueError(f"skew: expected shape (*, 3), got {tuple(v.shape)}")
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([torch.stack([o, -z, y], -1),
-                        torch.stack([z, o, -x], -1),
-                        torch.stack([-y, x, o], -1)], -2)
-
-
-def _check_pose(R: Tensor, t: Tensor, name: str) -> None:
-    if R.dim() < 2 or R.shape[-2:] != (3, 3):
-        raise ValueError(f"R_{name}: expected shape (*, 3, 3), got {tuple(R.shape)}")
-    if t.dim() < 1 or t.shape[-1] != 3:
-        raise ValueError(f"t_{name}: expected shape (*, 3), got {tuple(t.shape)}")
-
-
-def essential_from_poses(R_i: Tensor, t_i: Tensor, R_j: Tensor, t_j: Tensor,
-                         eps: float = 1e-12) -> Tensor:
-    r"""Essential matrix between views i and j for world→camera poses, unit baseline.
-
-    With ``x ~ K (R X + t)`` the camera centre is C = −Rᵀt and a calibrated point x
-    has world direction Rᵀx. Two rays meet iff they are coplanar with the baseline:
-
-    .. math::
-        (R_i^\top x_i) \cdot \big(\hat b \times R_j^\top x_j\big) = x_i^\top
-        \underbrace{R_i [\hat b]_\times R_j^\top}_{E_{ij}} x_j = 0,
-        \qquad \hat b = \frac{C_j - C_i}{\lVert C_j - C_i\rVert}
-
-    The baseline is normalised (max(‖b‖, eps)) so residuals do not depend on the
-    scene's scale; coincident centres give E ≈ 0.
-
-    Shapes: R_i, R_j (*, 3, 3), t_i, t_j (*, 3) broadcastable -> (*, 3, 3).
-    """
-    _check_pose(R_i, t_i, "i")
-    _check_pose(R_j, t_j, "j")
-    C_i = -(R_i.transpose(-1, -2) @ t_i.unsqueeze(-1)).squeeze(-1)
-    C_j = -(R_j.transpose(-1, -2) @ t_j.unsqueeze(-1)).squeeze(-1)
-    b = C_j - C_i
-    b = b / b.norm(dim=-1, keepdim=True).clamp(min=eps)
-    return R_i @ skew(b) @ R_j.transpose(-1, -2)
-
-
-def epipolar_residuals(X_i: Tensor, X_j: Tensor, R_i: Tensor, t_i: Tensor, R_j: Tensor, t_j: Tensor,
-                       normalize_rays: bool = False) -> Tensor:
-    r"""Epipolar residuals |x_iᵀ E_ij x_j| of point pairs (see :func:`essential_from_poses`).
-
-    Poses are world→camera (``x ~ K (R X + t)``), points calibrated homogeneous
-    (K⁻¹[u, v, 1], :func:`features.calibrated_points`). The baseline is unit length,
-    so the residual is scale-free; with ``normalize_rays`` the points are also made
-    unit vectors, which bounds the residual by 1 (the volume spanned by the two rays
-    and the baseline direction).
-
-    Broadcasting follows ``torch.matmul``: points (*, N, 3) pair row by row, the pose
-    batch (*) broadcasts with the points' leading dimensions. Examples:
-    (N, 3) with single poses (3, 3)/(3,) -> (N,); (B, N, 3) with (B, 3, 3)/(B, 3) -> (B, N);
-    all pairs of two sets: X_i (n, 1, 3), X_j (1, m, 3), single poses -> (n, m).
-
-    Shapes:
-        X_i, X_j (*, N, 3); R_i, R_j (*, 3, 3); t_i, t_j (*, 3) -> (*, N).
-    """
-    if X_i.dim() < 2 or X_i.shape[-1] != 3:
-        raise ValueError(f"X_i: expected shape (*, N, 3), got {tuple(X_i.shape)}")
-    if X_j.dim() < 2 or X_j.shape[-1] != 3:
-        raise ValueError(f"X_j: expected shape (*, N, 3), got {tuple(X_j.shape)}")
-    Ess = essential_from_poses(R_i, t_i, R_j, t_j)
-    if normalize_rays:
-        X_i = X_i / X_i.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-        X_j = X_j / X_j.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    return ((X_i @ Ess) * X_j).sum(dim=-1).abs()
-
-
 def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offsets,
                   clamp_negative: bool = True, normalize_rays: bool = False) -> Tensor:
     r"""The paper's geometric loss: mean over cross-view pairs of (EEᵀ)_ij · G_ij.
@@ -250,7 +177,7 @@ def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offs
     for world→camera poses (R_v, t_v) (``x ~ K (R X + t)``, camera centre C = −Rᵀt,
     camera→world rotation Rᵀ, unit baseline direction b̂_ab = (C_b − C_a)/‖C_b − C_a‖,
     which makes the loss independent of the scene's scale); see
-    :func:`essential_from_poses`. The authors wrote the same residual with
+    :func:`gcn_match_ros.geometry.essential_from_poses`. The authors wrote the same residual with
     camera→world rotations and camera centres. The mean over unordered pairs equals
     the mean over ordered ones (both S and G are symmetric). Computed one view-pair
     block at a time.
@@ -262,7 +189,7 @@ def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offs
 
     Args:
         E: (N, d) embeddings.
-        X: (N, 3) calibrated homogeneous keypoints (:func:`features.calibrated_points`).
+        X: (N, 3) calibrated homogeneous keypoints (:func:`gcn_match_ros.node_features.calibrated_points`).
         R: (V, 3, 3) world→camera rotations.
         t: (V, 3) world→camera translations.
         view_offsets: (V+1,) node offsets of the views.
@@ -304,27 +231,6 @@ def epipolar_loss(E: Tensor, X: Tensor, R: Tensor, t: Tensor, view_offsets: Offs
     return total / count if count else total
 
 
-def pixel_epipolar_residuals(xa, xb, K_a, R_a, t_a, K_b, R_b, t_b) -> "np.ndarray":
-    """Sampson distance in pixels of pairs xa[m] <-> xb[m] under the true poses.
-
-    World→camera poses ``x ~ K (R X + t)``; used only by the training loss of the edge head.
-    Shapes: xa, xb (M, 2) pixels, K (3, 3), R (3, 3), t (3,) -> (M,) float64.
-    """
-    import numpy as np
-
-    R_rel = R_b @ R_a.T
-    t_rel = t_b - R_rel @ t_a
-    tx = np.array([[0, -t_rel[2], t_rel[1]], [t_rel[2], 0, -t_rel[0]], [-t_rel[1], t_rel[0], 0]])
-    F = np.linalg.inv(K_b).T @ tx @ R_rel @ np.linalg.inv(K_a)  # xb^T F xa = 0
-    ha = np.concatenate([xa, np.ones((xa.shape[0], 1))], axis=1)
-    hb = np.concatenate([xb, np.ones((xb.shape[0], 1))], axis=1)
-    Fa = ha @ F.T
-    Ftb = hb @ F
-    num = np.abs((hb * Fa).sum(1))
-    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2)
-    return num / np.maximum(den, 1e-12)
-
-
 def edge_loss(logits: Tensor, residual_px: Tensor, tol_px: float = 1.0, span_px: float = 2.0,
               epipolar_weight: float = 9.0) -> Tensor:
     r"""Label-free loss of the edge head on the candidate edges of a posed problem.
@@ -338,8 +244,4 @@ def edge_loss(logits: Tensor, residual_px: Tensor, tol_px: float = 1.0, span_px:
     true poses exceeds τ + σ pixels is pushed to sigmoid(z) = 1/(1+λ). No match labels.
     """
     g = ((residual_px - tol_px) / span_px).clamp(0.0, 1.0).to(logits.dtype)
-    return (F_softplus(-logits) + epipolar_weight * g * F_softplus(logits)).mean()
-
-
-def F_softplus(x: Tensor) -> Tensor:
-    return torch.nn.functional.softplus(x)
+    return (F.softplus(-logits) + epipolar_weight * g * F.softplus(logits)).mean()

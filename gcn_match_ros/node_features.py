@@ -15,15 +15,15 @@ descriptor.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Dict, Tuple
+from typing import Any, Dict
 
 import numpy as np
 
-from .graph import normalize_descriptors
+from .descriptors import NORMALIZATIONS, normalize_descriptors
+from .geometry import unproject
 from .problem import Problem
 
-__all__ = ["FeatureConfig", "node_features", "feature_dim", "calibrated_points",
-           "normalized_positions", "descriptor_kind", "describe_descriptor_kind"]
+__all__ = ["FeatureConfig", "node_features", "feature_dim", "calibrated_points", "normalized_positions"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,7 +32,7 @@ class FeatureConfig:
 
     Attributes:
         descriptor: the row-normalised descriptor (D columns).
-        normalization: "l2" or "rootsift", as :func:`graph.normalize_descriptors`.
+        normalization: "l2" or "rootsift", as :func:`descriptors.normalize_descriptors`.
         position: calibrated x, y (2 columns); see :func:`normalized_positions`.
         scale: log(scale) - 1.5 (1 column; 0 where scales are missing or <= 0).
         orientation: orientation / pi (1 column; 0 where missing).
@@ -45,7 +45,7 @@ class FeatureConfig:
     orientation: bool = True
 
     def __post_init__(self) -> None:
-        if self.normalization not in ("l2", "rootsift"):
+        if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"FeatureConfig.normalization must be 'l2' or 'rootsift', "
                              f"got {self.normalization!r}")
 
@@ -63,42 +63,17 @@ class FeatureConfig:
         return cls(**d)
 
 
-def descriptor_kind(descriptors: np.ndarray) -> Tuple[int, bool]:
-    """(dimension, binary) of an (N, D) descriptor array; binary = every entry 0 or 1 (the
-    problem format's unpacked bits, e.g. ORB), real-valued otherwise (SIFT, learned
-    descriptors). An empty array counts as real-valued."""
-    d = np.asarray(descriptors)
-    binary = bool(d.size) and bool(np.all((d == 0) | (d == 1)))
-    return int(d.shape[1]) if d.ndim == 2 else 0, binary
-
-
-def describe_descriptor_kind(kind: Tuple[int, bool]) -> str:
-    """Words for a :func:`descriptor_kind`: ``'256-bit binary'``, ``'128-D real-valued'``."""
-    return f"{kind[0]}-bit binary" if kind[1] else f"{kind[0]}-D real-valued"
-
-
 def feature_dim(descriptor_dim: int, config: FeatureConfig = FeatureConfig()) -> int:
     """Number of feature columns F for descriptors of dimension ``descriptor_dim``."""
     return (int(descriptor_dim) * config.descriptor + 2 * config.position
             + int(config.scale) + int(config.orientation))
 
 
-def _unproject(K: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """K^-1 [x, y, 1]^T for every row, scaled so the last coordinate is 1.
-
-    Shapes: K (3, 3), xy (n, 2) -> (n, 3) float64.
-    """
-    h = np.concatenate([xy.astype(np.float64), np.ones((xy.shape[0], 1))], axis=1)
-    X = np.linalg.solve(K, h.T).T
-    z = X[:, 2:3]
-    return X / np.where(np.abs(z) > 1e-12, z, 1.0)
-
-
 def calibrated_points(problem: Problem) -> np.ndarray:
     """Homogeneous normalised image coordinates K_v^-1 [x, y, 1] of every keypoint.
 
     The result is scaled so that its last coordinate is 1 (it already is for the
-    usual upper-triangular K). Used by :func:`losses.epipolar_loss`.
+    usual upper-triangular K). Used by :func:`gcn_match_ros.learn.losses.epipolar_loss`.
 
     Shapes:
         problem.keypoints (N, 2), problem.K (V, 3, 3) -> (N, 3) float64.
@@ -112,7 +87,7 @@ def calibrated_points(problem: Problem) -> np.ndarray:
     for v in range(problem.n_views):
         sl = problem.view_slice(v)
         if sl.stop > sl.start:
-            out[sl] = _unproject(problem.K[v], problem.keypoints[sl])
+            out[sl] = unproject(problem.K[v], problem.keypoints[sl])
     return out
 
 
@@ -134,7 +109,7 @@ def normalized_positions(problem: Problem) -> np.ndarray:
         if pts.shape[0] == 0:
             continue
         if problem.K is not None:
-            out[sl] = _unproject(problem.K[v], pts)[:, :2]
+            out[sl] = unproject(problem.K[v], pts)[:, :2]
         elif problem.image_size is not None:
             wh = problem.image_size[v].astype(np.float64)
             out[sl] = (pts - wh / 2.0) / max(float(wh.max()), 1.0)

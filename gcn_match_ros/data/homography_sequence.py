@@ -7,8 +7,8 @@ Oxford viewpoint sequences. Views 2… also get a photometric change (gain, gamm
 blur, noise). Every quadrilateral lies inside the source, so every view is fully covered.
 
 :func:`write_sequence` writes ``img1.png`` … ``imgV.png`` and ``H1toNp`` (``x_N ~ H1toN x_1``)
-— the layout :func:`datasets.read_oxford` reads, so ``datasets.load_scene(root,
-"homography/<name>")`` and ``datasets.convert`` make problems of it labelled like Oxford.
+— the layout :func:`.scenes.read_oxford` reads, so ``scenes.load_scene(root,
+"homography/<name>")`` and :func:`.convert.convert` make problems of it labelled like Oxford.
 """
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Depth of single keypoints by plane sweep: the photo-consistency evidence behind
-``datasets.label_photometric``.
+:func:`.labels.label_photometric`.
 
 A keypoint x of view v is lifted to a 3D point by sweeping depth along its ray (a coarse
 grid, then a fine one around the coarse peak): at each depth z, on a grid uniform in 1/z,
@@ -12,7 +12,7 @@ depth whose mean NCC over the support views is highest wins when
   clear peak: repeated structure along the epipolar line gives several and is refused).
 
 Flat patches (standard deviation under ``min_std`` grey levels) and patches leaving an
-image do not count. Poses are world→camera, ``x ~ K (R X + t)`` (``datasets.Scene``).
+image do not count. Poses are world→camera, ``x ~ K (R X + t)`` (:class:`.scenes.Scene`).
 """
 from __future__ import annotations
 
@@ -22,7 +22,9 @@ from typing import Sequence, Tuple
 import cv2
 import numpy as np
 
-__all__ = ["SweepConfig", "lift", "patch_ncc", "project", "inverse_depths"]
+from ..geometry import camera_centers, project
+
+__all__ = ["SweepConfig", "lift", "patch_ncc", "project_in_front", "inverse_depths"]
 
 _REMAP_ROWS = 30000  # cv2.remap maps must stay below SHRT_MAX rows
 _DEPTH_BLOCK = 16
@@ -42,12 +44,10 @@ class SweepConfig:
     min_std: float = 2.0
 
 
-def project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+def project_in_front(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Pixels of world points ``X`` (*, 3) in camera (K, R, t) -> (*, 2); NaN behind it."""
-    cam = X @ R.T + t
-    with np.errstate(divide="ignore", invalid="ignore"):
-        px = (cam @ K.T)[..., :2] / cam[..., 2:]
-    return np.where(cam[..., 2:] > 0, px, np.nan)
+    px, depth = project(K, R, t, X)
+    return np.where(depth[..., None] > 0, px, np.nan)
 
 
 def _sample(image: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -95,7 +95,7 @@ def patch_ncc(images: Sequence[np.ndarray], K: np.ndarray, R: np.ndarray, t: np.
     out = np.empty(depth.shape)
     for d0 in range(0, depth.shape[1], _DEPTH_BLOCK):  # bounded memory: n x block x P points at a time
         block = depth[:, d0:d0 + _DEPTH_BLOCK]
-        at = project(K[u], R[u], t[u], _patch_points(K[v], R[v], t[v], xy, block, config.half))
+        at = project_in_front(K[u], R[u], t[u], _patch_points(K[v], R[v], t[v], xy, block, config.half))
         out[:, d0:d0 + _DEPTH_BLOCK] = _ncc(own, _sample(images[u], at), config.min_std)
     return out
 
@@ -105,7 +105,7 @@ def inverse_depths(K: np.ndarray, R: np.ndarray, t: np.ndarray, v: int, support:
     """Grid of inverse depths (D,), uniform, fine enough that neighbouring depths differ by
     about ``step_px`` of disparity in the support view farthest from camera v."""
     z_min, z_max = z_range
-    centres = -np.einsum("vji,vj->vi", R, t)
+    centres = camera_centers(R, t)
     baseline = max(float(np.linalg.norm(centres[u] - centres[v])) for u in support)
     steps = int(np.clip(K[v][0, 0] * baseline * (1 / z_min - 1 / z_max) / step_px, 8, max_steps))
     return np.linspace(1 / z_max, 1 / z_min, steps)

@@ -1,28 +1,18 @@
-"""Synthetic multi-view matching problems with exact ground truth.
+"""Synthetic multi-view matching problems with exact ground truth: a 3D scene seen by
+calibrated pinhole cameras.
 
-Two generators, both returning :class:`~gcn_match_ros.problem.Problem` objects that
-follow ``shared/spec/problem-format.md``:
-
-1. :func:`permutation_noise_problem` — the *synthetic table* protocol of Phillips &
-   Daniilidis ("All Graphs Lead to Rome", arXiv 1901.02078, Table 1), as their code
-   (``data_util/noisy_dataset.py``) ran it: p points seen by every view in a random
-   order, a noisy adjacency per view pair built from random permutations, optional
-   "outliers" made of transpositions. It also returns that adjacency as a
-   :class:`~gcn_match_ros.graph.CorrespondenceGraph` (the protocol *gives* the graph;
-   it is not built from descriptors).
-
-2. :func:`random_scene_problem` — a 3D scene seen by calibrated pinhole cameras
-   (an orbit around an object, or a robot moving forward), with partial visibility,
-   pixel noise, SIFT-like or Gaussian descriptors, detector scales and orientations,
-   and distractor keypoints. Presets :func:`rome16k`, :func:`partial`, :func:`easy`.
-
-:func:`write_problems` writes a deterministic batch of either kind to ``.npz`` files.
-:func:`mutual_nn_prf` and :func:`graph_outlier_rate` are small self-contained
-calibration helpers (precision/recall of plain mutual nearest neighbours on the
-descriptors; wrong-match rate of a graph); the project's metrics live elsewhere.
+:func:`random_scene_problem` places cameras (an orbit around an object, or a robot moving
+forward), with partial visibility, pixel noise, SIFT-like, Gaussian or ORB-like binary
+descriptors, detector scales and orientations, and distractor keypoints; presets
+:func:`rome16k`, :func:`partial`, :func:`easy`. It returns a
+:class:`~gcn_match_ros.problem.Problem` following ``shared/spec/problem-format.md``;
+:func:`write_problems` writes a deterministic batch to ``.npz`` files. The paper's
+permutation-noise protocol is :mod:`.permutation_noise`. :func:`mutual_nn_prf` is a small
+self-contained calibration helper (precision/recall of plain mutual nearest neighbours on
+the descriptors); the project's metrics live elsewhere.
 
 Calibration: plain mutual nearest neighbours on the descriptors (:func:`mutual_nn_prf`,
-pooled over 200 problems, seeds 0..199; re-run with ``python -m gcn_match_ros.synthetic``):
+pooled over 200 problems, seeds 0..199; re-run with ``benchmarks/synthetic_calibration.py``):
 
 =========================  =====  =====  =====  =====================================
 preset                      P      R      F1    descriptor noise σ
@@ -39,9 +29,8 @@ easy(3)                    1.000  0.982  0.991  1.0
 =========================  =====  =====  =====  =====================================
 
 rome16k matches "nearest neighbours alone F1 0.76 at σ = 1.6" and partial matches
-"mutual NN 0.72" of shared/notes/evaluation.md (difficulty matched, not the σ scale). The
-permutation protocol's wrong-match rates: 0 (noiseless, added noise), 0.061 ("5%"
-outliers), 0.080 ("10%"). Generation takes ~2–6 ms per preset problem.
+"mutual NN 0.72" of shared/notes/evaluation.md (difficulty matched, not the σ scale).
+Generation takes ~2–6 ms per preset problem.
 
 Conventions: world→camera poses ``x ~ K (R X + t)``, OpenCV camera frame (x right,
 y down, z forward), pixel (x, y) with the image spanning ``[0, width) × [0, height)``.
@@ -55,21 +44,19 @@ from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
 
-from . import features
-from .graph import CorrespondenceGraph
-from .problem import Problem, save_problem
+from ..descriptors import descriptor_kind
+from ..geometry import project
+from ..problem import Problem, save_problem
 
-__all__ = [
-    "permutation_noise_problem", "PAPER_SYNTHETIC_ROWS",
-    "SceneConfig", "random_scene_problem", "rome16k", "partial", "easy", "PRESETS", "preset",
-    "sift_normalize", "write_problems", "mutual_nn_prf", "graph_outlier_rate",
-    "DEFAULT_DESCRIPTOR_NOISE",
-]
+__all__ = ["SceneConfig", "random_scene_problem", "rome16k", "partial", "easy", "PRESETS", "preset",
+           "DESCRIPTOR_KINDS", "DEFAULT_DESCRIPTOR_NOISE", "sift_normalize", "rng_of", "write_problems",
+           "mutual_nn_prf"]
 
 RngLike = Union[None, int, np.random.Generator, np.random.SeedSequence]
 
 
-def _rng(rng: RngLike) -> np.random.Generator:
+def rng_of(rng: RngLike) -> np.random.Generator:
+    """``rng`` itself if it is a Generator, else ``np.random.default_rng(rng)``."""
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
@@ -343,16 +330,6 @@ def _intrinsics(cfg: SceneConfig) -> np.ndarray:
     return np.repeat(K[None], cfg.n_views, axis=0)
 
 
-def _project(K: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray):
-    """Pixel coordinates (n, 2) and depths (n,) of world points X (n, 3) in one camera."""
-    Xc = X @ R.T + t
-    z = Xc[:, 2]
-    uvw = Xc @ K.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = uvw[:, :2] / uvw[:, 2:3]
-    return uv, z
-
-
 def _inside(cfg: SceneConfig, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
     w, h = cfg.image_size
     b = cfg.border_px
@@ -379,7 +356,7 @@ def _sample_points(cfg: SceneConfig, K, Rs, ts, rng: np.random.Generator) -> np.
             X = (Xc - ts[-1]) @ Rs[-1]  # R^T (Xc - t)
         ok = np.ones(m, bool)
         for v in range(cfg.n_views):
-            uv, z = _project(K[v], Rs[v], ts[v], X)
+            uv, z = project(K[v], Rs[v], ts[v], X)
             ok &= _inside(cfg, uv, z)
         X = X[ok]
         take = min(n - have, X.shape[0])
@@ -417,7 +394,7 @@ def random_scene_problem(config: SceneConfig = SceneConfig(), rng: RngLike = Non
     keypoints of each view in random order. Deterministic given ``rng``.
     """
     cfg = config
-    rng = _rng(rng)
+    rng = rng_of(rng)
     V, P = cfg.n_views, cfg.n_points
     w, h = cfg.image_size
     K = _intrinsics(cfg)
@@ -435,7 +412,7 @@ def random_scene_problem(config: SceneConfig = SceneConfig(), rng: RngLike = Non
     kps, descs, scales, oris, gts, offsets = [], [], [], [], [], [0]
     for v in range(V):
         pts = np.flatnonzero(vis[v])
-        uv, z = _project(K[v], Rs[v], ts[v], X[pts])
+        uv, z = project(K[v], Rs[v], ts[v], X[pts])
         uv = uv + cfg.pixel_noise * rng.standard_normal(uv.shape)
         d = _observe_descriptors(cfg.descriptor_kind, raw[pts], sigma, rng)
         s = point_scale[pts] * ref_depth / z * np.exp(cfg.scale_view_log_std * rng.standard_normal(pts.size))
@@ -475,118 +452,6 @@ def random_scene_problem(config: SceneConfig = SceneConfig(), rng: RngLike = Non
 
 
 # ---------------------------------------------------------------------------------------
-# The paper's synthetic-table protocol
-# ---------------------------------------------------------------------------------------
-#: Rows of the paper's synthetic table (Table 1) as keyword arguments of
-#: :func:`permutation_noise_problem`. The paper gives no numbers for its noise; the
-#: authors' code has two knobs, reproduced here:
-#:
-#: * "Noiseless": the exact adjacency.
-#: * "Added Noise": each block = Pᵢ(0.9·I + 0.1·Σ_K Q_k)Pⱼᵀ clipped at 1 (their
-#:   ``GraphSimPairwiseDataset``; ``n_perms`` = their ``num_repeats``, not stated in the
-#:   paper — K = 3 is our choice: three spurious 0.1-weight edges per keypoint and block).
-#: * "5% / 10% Outliers": the exact adjacency with transpositions (their
-#:   ``GraphSimOutlierDataset``: outliers spread over the view pairs, one transposition
-#:   in each hit pair). One transposition swaps the matches of two of the p = 25 points,
-#:   i.e. 2/25 = 8% wrong matches in that block; the paper's "5%" and "10%" came out as
-#:   ~6% and ~8% wrong matches overall, which ``outlier_transpositions`` = 0.75 and 1.0
-#:   (expected transpositions per view pair) reproduce: wrong-match rate 2·t/p = 6% / 8%.
-PAPER_SYNTHETIC_ROWS = {
-    "noiseless": dict(n_perms=0, outlier_transpositions=0.0),
-    "added_noise": dict(n_perms=3, outlier_transpositions=0.0),
-    "outliers_5pct": dict(n_perms=0, outlier_transpositions=0.75),
-    "outliers_10pct": dict(n_perms=0, outlier_transpositions=1.0),
-}
-
-
-def _block_matrix(p: int, n_perms: int, noise_weight: float, transpositions: float,
-                  rng: np.random.Generator) -> np.ndarray:
-    """The (p, p) point-to-point matrix M of one view pair (rows: points of view i)."""
-    if n_perms > 0:
-        M = (1.0 - noise_weight) * np.eye(p)
-        for _ in range(n_perms):
-            M[np.arange(p), rng.permutation(p)] += noise_weight
-    else:
-        M = np.eye(p)
-    n_t = int(math.floor(transpositions))
-    if rng.random() < transpositions - n_t:
-        n_t += 1
-    n_t = min(n_t, p // 2)
-    if n_t:
-        idx = rng.choice(p, size=2 * n_t, replace=False)
-        a, b = idx[:n_t], idx[n_t:]  # disjoint transpositions: exactly 2·n_t wrong matches
-        M[np.concatenate([a, b])] = M[np.concatenate([b, a])]
-    return np.minimum(M, 1.0)
-
-
-def permutation_noise_problem(n_views: int = 3, n_points: int = 25, descriptor_dim: int = 12,
-                              n_perms: int = 0, outlier_transpositions: float = 0.0,
-                              rng: RngLike = None, noise_weight: float = 0.1,
-                              descriptor_noise: float = 0.95, name: str = ""
-                              ) -> Tuple[Problem, CorrespondenceGraph]:
-    """The paper's synthetic protocol: a problem and its given noisy correspondence graph.
-
-    Every view sees all ``n_points`` points in a random order Pᵢ (``gt_track`` = point id).
-    The adjacency of views i ≠ j is Pᵢ M_ij Pⱼᵀ with M_ij = (1 − w)·I + w·Σ_K Q_k clipped
-    at 1 for K = ``n_perms`` random permutations Q_k and w = ``noise_weight`` (K = 0: M = I,
-    the exact adjacency), then ``outlier_transpositions`` transpositions (expected number
-    per view pair: integer part always, fractional part with that probability) swap rows
-    of M_ij, each making 2 wrong matches of weight ≥ 0.9. Within-view blocks are zero.
-
-    Descriptors: a 12-dim N(0, I) descriptor per point plus N(0, descriptor_noise²) per
-    observation, L2-normalised; σ = 0.95 reproduces the paper's "Initialization Baseline"
-    row (same-point cosine 0.51). Geometry (K, R, t, keypoints, scales, orientations) comes
-    from an orbit scene (:class:`SceneConfig`, every point visible, 0.5 px noise) so the
-    epipolar loss can be used too.
-
-    The returned graph stores every nonzero cross-view entry in both directions:
-    ``weights`` = block value, ``cosine`` = descriptor cosine of the edge, ``ratio`` = 1 and
-    ``rank`` = 0 (this protocol has no candidate lists). :func:`graph_outlier_rate` measures
-    the wrong-match rate; see :data:`PAPER_SYNTHETIC_ROWS` for the paper's table rows.
-    """
-    rng = _rng(rng)
-    cfg = SceneConfig(n_views=n_views, n_points=n_points, visibility=1.0, distractor_fraction=0.0,
-                      descriptor_kind="gaussian", descriptor_dim=descriptor_dim,
-                      descriptor_noise=descriptor_noise, pixel_noise=0.5)
-    prob = random_scene_problem(cfg, rng, name=name)  # rows of view i are in random order Pᵢ
-    gt = prob.gt_track
-    offs = prob.view_offsets
-    desc = prob.descriptors.astype(np.float64)
-    rows, cols, weights = [], [], []
-    for i in range(n_views):
-        gi = gt[offs[i]:offs[i + 1]]
-        for j in range(i + 1, n_views):
-            gj = gt[offs[j]:offs[j + 1]]
-            M = _block_matrix(n_points, n_perms, noise_weight, outlier_transpositions, rng)
-            block = M[np.ix_(gi, gj)]  # Pᵢ M Pⱼᵀ
-            r, c = np.nonzero(block)
-            rows += [r + offs[i], c + offs[j]]
-            cols += [c + offs[j], r + offs[i]]
-            weights += [block[r, c]] * 2
-    rows, cols, weights = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
-    order = np.lexsort((cols, rows))
-    rows, cols, weights = rows[order].astype(np.int64), cols[order].astype(np.int64), weights[order]
-    cosine = np.einsum("ed,ed->e", desc[rows], desc[cols])
-    graph = CorrespondenceGraph(
-        view_offsets=offs.copy(), rows=rows, cols=cols,
-        weights=weights.astype(np.float32), cosine=cosine.astype(np.float32),
-        ratio=np.ones(rows.size, np.float32), rank=np.zeros(rows.size, np.int64))
-    return prob, graph
-
-
-def graph_outlier_rate(graph: CorrespondenceGraph, gt_track: np.ndarray, min_weight: float = 0.5) -> float:
-    """Fraction of the graph's matches (undirected edges with weight >= ``min_weight``)
-    whose ends are not the same scene point."""
-    r, c, pos = graph.upper_pairs()
-    keep = graph.weights[pos] >= min_weight
-    r, c = r[keep], c[keep]
-    if r.size == 0:
-        return 0.0
-    true = (gt_track[r] == gt_track[c]) & (gt_track[r] >= 0)
-    return float(1.0 - true.mean())
-
-
-# ---------------------------------------------------------------------------------------
 # Calibration helper and batch writer
 # ---------------------------------------------------------------------------------------
 def mutual_nn_prf(problem: Problem) -> Tuple[float, float, float, int, int, int]:
@@ -598,7 +463,7 @@ def mutual_nn_prf(problem: Problem) -> Tuple[float, float, float, int, int, int]
     keypoints labelled -2 are left out. Needs ``problem.gt_track``.
     """
     gt = problem.gt_track
-    binary = features.descriptor_kind(problem.descriptors)[1]
+    binary = descriptor_kind(problem.descriptors)[1]
     # for 0/1 codes a·b - (|a| + |b|) / 2 = -Hamming / 2: the same ranking as Hamming
     d = np.asarray(problem.descriptors, np.float64) if binary else _l2_normalize(problem.descriptors)
     half = d.sum(axis=1) / 2 if binary else np.zeros(len(d))
@@ -630,7 +495,7 @@ def write_problems(out_dir, generator: Callable[[np.random.Generator], object], 
     """Write ``count`` problems ``{out_dir}/{prefix}-{i:05d}.npz`` with :func:`save_problem`.
 
     ``generator(rng)`` returns a :class:`Problem` (or a tuple whose first item is one, as
-    :func:`permutation_noise_problem` does), e.g.
+    :func:`.permutation_noise.permutation_noise_problem` does), e.g.
     ``lambda rng: random_scene_problem(rome16k(3), rng)``. Problem i uses its own
     generator from ``SeedSequence(seed).spawn(count)[i]``, so the files are a deterministic
     function of ``seed`` and i. Returns the written paths.
@@ -650,33 +515,3 @@ def write_problems(out_dir, generator: Callable[[np.random.Generator], object], 
         save_problem(prob, path)
         paths.append(path)
     return paths
-
-
-def _calibration_table(n: int = 200, seeds_from: int = 0) -> None:
-    import time
-
-    presets = [("rome16k(3)", rome16k(3)), ("rome16k(4)", rome16k(4)), ("partial(3)", partial(3)),
-               ("partial(4)", partial(4)), ("easy(3)", easy(3)),
-               ("rome16k(3) forward", rome16k(3, layout="forward")),
-               ("rome16k(3) gaussian", rome16k(3, descriptor_kind="gaussian")),
-               ("rome16k(3) binary", rome16k(3, descriptor_kind="binary")),
-               ("partial(3) binary", partial(3, descriptor_kind="binary"))]
-    print(f"{'preset':24s} {'P':>6s} {'R':>6s} {'F1':>6s}  ms/problem")
-    for label, cfg in presets:
-        tp = pred = true = 0
-        t0 = time.perf_counter()
-        probs = [random_scene_problem(cfg, seeds_from + s) for s in range(n)]
-        dt = (time.perf_counter() - t0) / n
-        for prob in probs:
-            _, _, _, a, b, c = mutual_nn_prf(prob)
-            tp, pred, true = tp + a, pred + b, true + c
-        p, r = tp / pred, tp / true
-        print(f"{label:24s} {p:6.3f} {r:6.3f} {2 * p * r / (p + r):6.3f}  {1000 * dt:.1f}")
-    for row, kw in PAPER_SYNTHETIC_ROWS.items():
-        rates = [graph_outlier_rate(g, pr.gt_track)
-                 for pr, g in (permutation_noise_problem(3, rng=s, **kw) for s in range(n))]
-        print(f"permutation {row:16s} wrong-match rate {np.mean(rates):.3f}")
-
-
-if __name__ == "__main__":
-    _calibration_table()

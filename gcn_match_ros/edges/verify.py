@@ -13,7 +13,9 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-__all__ = ["PairModel", "fit_pair", "residuals", "transfer", "epipolar_distance_matrix"]
+from ..geometry import sampson_distance, transfer
+
+__all__ = ["PairModel", "fit_pair", "residuals", "MIN_SEEDS", "RANSAC_PX", "PLANAR_RATIO"]
 
 MIN_SEEDS = 12
 RANSAC_PX = 3.0
@@ -62,22 +64,6 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     return PairModel(H, F, planar)
 
 
-def transfer(H: np.ndarray, x: np.ndarray) -> np.ndarray:
-    h = np.concatenate([x, np.ones((x.shape[0], 1))], axis=1) @ H.T
-    z = h[:, 2:3]
-    return h[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)
-
-
-def _sampson(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    ha = np.concatenate([xa, np.ones((xa.shape[0], 1))], axis=1)
-    hb = np.concatenate([xb, np.ones((xb.shape[0], 1))], axis=1)
-    Fa = ha @ F.T   # lines in b
-    Ftb = hb @ F    # lines in a
-    num = np.abs((hb * Fa).sum(1))
-    den = np.sqrt(Fa[:, 0] ** 2 + Fa[:, 1] ** 2 + Ftb[:, 0] ** 2 + Ftb[:, 1] ** 2)
-    return num / np.maximum(den, 1e-12)
-
-
 def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """(H symmetric transfer error, F Sampson distance) in pixels; inf where a model is missing."""
     n = xa.shape[0]
@@ -91,16 +77,5 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
         except np.linalg.LinAlgError:
             pass
     if model.F is not None:
-        rf = _sampson(model.F, xa, xb)
+        rf = sampson_distance(model.F, xa, xb)
     return rh, rf
-
-
-def epipolar_distance_matrix(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
-    """(na, nb) max of the two point-to-epipolar-line distances, pixels."""
-    ha = np.concatenate([xa, np.ones((xa.shape[0], 1))], axis=1)
-    hb = np.concatenate([xb, np.ones((xb.shape[0], 1))], axis=1)
-    la = ha @ F.T  # (na, 3) lines in b
-    lb = hb @ F    # (nb, 3) lines in a
-    d_b = np.abs(la @ hb.T) / np.maximum(np.linalg.norm(la[:, :2], axis=1), 1e-12)[:, None]
-    d_a = np.abs(ha @ lb.T) / np.maximum(np.linalg.norm(lb[:, :2], axis=1), 1e-12)[None, :]
-    return np.maximum(d_a, d_b)
