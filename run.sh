@@ -208,7 +208,7 @@ case "$cmd" in
         export ROS_LOG_DIR="${ROS_LOG_DIR:-$ROOT/log/ros}"
         mkdir -p "$ROS_LOG_DIR"
         if [[ "$cmd" == demo ]]; then
-            exec "$VENV/bin/python" -m gcn_match_ros.demo "$@"
+            exec "$VENV/bin/python" -m gcn_match_ros.ros.demo "$@"
         fi
         exec "$cmd" "$@"
         ;;

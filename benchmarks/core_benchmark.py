@@ -32,7 +32,8 @@ sys.path.insert(0, str(REPO))
 from gcn_match_ros.data import synthetic  # noqa: E402
 from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
 from gcn_match_ros.metrics import mean_scores, score_result  # noqa: E402
-from gcn_match_ros.solvers import available_solvers, get_solver  # noqa: E402
+from gcn_match_ros import solvers
+from gcn_match_ros.solvers import available_solvers  # noqa: E402
 
 ROW_TIMEOUT_S = 120  # a scaling row that takes longer is reported as stopped
 SYNC_METHODS = ("spectral", "matchals", "pgdds", "matcheig", "clear", "quickmatch")
@@ -79,7 +80,7 @@ def paper_protocol_section(n_problems: int, out) -> dict:
     for row, kw in synthetic.PAPER_SYNTHETIC_ROWS.items():
         cells = []
         for spec in methods:
-            solver = get_solver(spec)
+            solver = solvers.create(spec)
             scores = []
             for i in range(n_problems):
                 # 128-D descriptors so that the SIFT-trained GCN gets node features of its size; the
@@ -104,11 +105,11 @@ import json, resource, sys, time
 import numpy as np, torch
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.graph import build_graph
-from gcn_match_ros.solvers import get_solver
+from gcn_match_ros import solvers
 spec, views, n, reps = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 cfg = synthetic.rome16k(views, n_points=n)
 problem = synthetic.random_scene_problem(cfg, np.random.default_rng(0))
-solver = get_solver(spec)
+solver = solvers.create(spec)
 small = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=20), np.random.default_rng(1))
 solver.solve(small)  # warm-up (first op calls are slow)
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

@@ -97,10 +97,10 @@ def _frames(n_cams: int, n_kp: int, seed: int = 0):
     for v in range(n_cams):
         s = p.view_slice(v)
         idx = np.arange(s.start, s.stop)[:n_kp]
-        f = Frame(camera_id=f"cam{v}", stamp=1.0, keypoints=p.keypoints[idx], descriptors=p.descriptors[idx],
+        f = Frame(camera_id=f"cam{v}", stamp_ns=10**9, keypoints=p.keypoints[idx], descriptors=p.descriptors[idx],
                   frame_id=f"cam{v}_optical_frame", scales=p.scales[idx], orientations=p.orientations[idx],
-                  K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]))
-        msgs.append(frame_to_keypoints(f, descriptor_name="sift"))
+                  K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]), descriptor_name="sift")
+        msgs.append(frame_to_keypoints(f))
     return msgs
 
 
@@ -228,7 +228,7 @@ def _fmt_drops(d: dict) -> str:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     solver = args.solver or _default_solver()
-    from gcn_match_ros.ros import FASTDDS_PROFILE_ENV, use_large_shm
+    from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, use_large_shm
 
     env = dict(os.environ)
     if not args.default_shm:

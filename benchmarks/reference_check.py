@@ -53,7 +53,7 @@ sys.path.insert(0, str(REPO))
 from gcn_match_ros.metrics import mean_scores, score_result  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.rounding import is_cycle_consistent  # noqa: E402
-from gcn_match_ros.solvers import get_solver  # noqa: E402
+from gcn_match_ros import solvers  # noqa: E402
 
 REFERENCE = REPO.parent / "shared" / "reference" / "oxford-dev"
 
@@ -82,7 +82,7 @@ KEYS = ("P", "R", "F1", "AP")
 
 
 def run_check(spec: str, problems, per_problem: bool, ref_rows):
-    solver = get_solver(spec)
+    solver = solvers.create(spec)
     rows = []
     for prob in problems:
         res = solver.solve(prob)

@@ -31,7 +31,7 @@ from gcn_match_ros.data import synthetic  # noqa: E402
 from gcn_match_ros.evaluation import evaluate  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.rounding import tracks_to_pairs  # noqa: E402
-from gcn_match_ros.solvers import get_solver  # noqa: E402
+from gcn_match_ros import solvers  # noqa: E402
 from gcn_match_ros.learn.sources import SYNTH_VAL_SEED as _SYNTH_VAL_SEED  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -54,7 +54,7 @@ def generated_validation(descriptor_kind: str, count: int):
 
 def scored_share(spec: str, problems) -> float:
     """Fraction of the method's predicted pairs whose two keypoints are both labelled."""
-    solver = get_solver(spec)
+    solver = solvers.create(spec)
     total = scored = 0
     for p in problems:
         rows, cols = tracks_to_pairs(solver.solve(p).track)

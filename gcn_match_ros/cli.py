@@ -42,7 +42,7 @@ from .learn.sources import DataSource, check_disjoint, data_source
 from .learn.train import train
 from .node_features import FeatureConfig, feature_dim
 from .problem import Problem, load_problem, save_result
-from .solvers import get_solver
+from . import solvers
 
 __all__ = ["main", "build_parser"]
 
@@ -86,7 +86,7 @@ def _cmd_synth(args) -> int:
 
 def _cmd_match(args) -> int:
     problem = load_problem(args.problem)
-    result = get_solver(args.method).solve(problem)
+    result = solvers.create(args.method).solve(problem)
     save_result(result, args.output)
     n_tracks = int(result.track.max(initial=-1)) + 1
     print(f"{problem.name}: {result.method}: {n_tracks} tracks, {result.pair_rows.size} scored pairs, "

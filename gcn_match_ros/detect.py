@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["DETECTORS", "Features", "extract_features"]
+__all__ = ["DETECTORS", "DETECTOR_KINDS", "Features", "extract_features"]
 
 DETECTORS = ("sift", "orb")
 #: Descriptor kind of each detector: (dimension, binary).
@@ -66,7 +66,7 @@ def extract_features(image: np.ndarray, detector: str = "sift", max_features: in
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     det = cv2.SIFT_create(max_features) if detector == "sift" else cv2.ORB_create(nfeatures=max_features)
     kps, desc = det.detectAndCompute(image, None)
-    dim = 128 if detector == "sift" else 256
+    dim = DETECTOR_KINDS[detector][0]
     if not kps:
         empty = np.zeros(0, np.float32)
         return Features(np.zeros((0, 2), np.float32), np.zeros((0, dim), np.float32), empty, empty)

@@ -15,7 +15,7 @@ import numpy as np
 
 from .metrics import SCORE_KEYS, mean_scores, pr_curve, reference_rows, score_result, scored_pairs
 from .problem import Problem, load_problem
-from .solvers import get_solver
+from . import solvers
 
 __all__ = ["evaluate", "format_table"]
 
@@ -38,14 +38,14 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
     for p in loaded:
         if p.gt_track is None:
             raise ValueError(f"problem '{p.name}' has no gt_track: cannot evaluate")
-    solvers = {spec: get_solver(spec) for spec in methods}
+    by_spec = {spec: solvers.create(spec) for spec in methods}
     report: Dict = {"problems": [p.name for p in loaded], "methods": {}}
     if loaded:
-        for solver in solvers.values():
+        for solver in by_spec.values():
             _warm_up(solver, loaded[0])
-    bar = tqdm(total=len(loaded) * len(solvers), desc="eval", unit="solve", disable=not progress,
+    bar = tqdm(total=len(loaded) * len(by_spec), desc="eval", unit="solve", disable=not progress,
                leave=False)
-    for spec, solver in solvers.items():
+    for spec, solver in by_spec.items():
         per_problem, skipped, pooled = {}, {}, []
         for p in loaded:
             bar.set_postfix_str(f"{spec} {p.name}", refresh=False)

@@ -23,8 +23,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from .descriptors import NORMALIZATIONS, normalize_descriptors
+from .descriptors import NORMALIZATIONS
 from .problem import Problem
+from .similarity import DescriptorSimilarity
 
 __all__ = ["GraphConfig", "GRAPH_PRESETS", "CorrespondenceGraph", "build_graph"]
 
@@ -175,27 +176,27 @@ def _directed_candidates(sim: torch.Tensor, k: int, row_offset: int, col_offset:
             np.tile(np.arange(kk, dtype=np.int64), n_rows))
 
 
-def build_graph(problem: Problem, config: GraphConfig = GraphConfig()) -> CorrespondenceGraph:
+def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
+                similarity: Optional[DescriptorSimilarity] = None) -> CorrespondenceGraph:
     """Build the correspondence graph of ``problem`` block by block.
 
-    Each unordered view pair's similarity block is computed once (O(n_i n_j D)) and
-    serves both directions and the min–max range; only candidates are kept, so memory is
-    O(E) plus one block.
+    Each unordered view pair's similarity block (``similarity``, the window's shared
+    :class:`~gcn_match_ros.similarity.DescriptorSimilarity`; made here if None) serves both
+    directions and the min–max range; only candidates are kept, so memory is O(E) plus the
+    blocks the similarity keeps.
     """
-    # torch: its CPU matmul and top-k are several times faster than numpy's here.
-    desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
+    similarity = similarity if similarity is not None else DescriptorSimilarity(problem)
     offs = problem.view_offsets
+    sizes = problem.view_sizes
     V = problem.n_views
     n = problem.n_keypoints
     parts = []
     sim_lo, sim_hi = np.inf, -np.inf
     for i in range(V):
-        di = desc[offs[i]:offs[i + 1]]
         for j in range(i + 1, V):
-            dj = desc[offs[j]:offs[j + 1]]
-            if di.shape[0] == 0 or dj.shape[0] == 0:
+            if sizes[i] == 0 or sizes[j] == 0:
                 continue
-            sim = di @ dj.T
+            sim = similarity.block(i, j, config.normalization)
             sim_lo, sim_hi = min(sim_lo, float(sim.min())), max(sim_hi, float(sim.max()))
             parts.append(_directed_candidates(sim, config.k, offs[i], offs[j]))
             parts.append(_directed_candidates(sim.T, config.k, offs[j], offs[i]))

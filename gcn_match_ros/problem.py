@@ -13,7 +13,7 @@ import dataclasses
 import os
 import tempfile
 from pathlib import Path
-from typing import Optional
+from typing import Dict, Optional
 
 import numpy as np
 
@@ -235,6 +235,8 @@ class Result:
         pair_scores: (M,) float32 in [0, 1].
         seconds: wall time of graph build + solve + rounding.
         method: method and settings, e.g. ``"gcn:default"``.
+        timings: seconds per stage of the solve (:mod:`gcn_match_ros.timing`; they add up to
+            about ``seconds``); not stored in result files.
     """
 
     track: np.ndarray
@@ -243,6 +245,7 @@ class Result:
     pair_scores: np.ndarray
     seconds: float = 0.0
     method: str = ""
+    timings: Dict[str, float] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.track = _as(self.track, np.int64, "track")

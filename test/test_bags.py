@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gcn_match_ros import geometry, stamps
+from gcn_match_ros import geometry
 from gcn_match_ros.bags import codec, contents, typesys
 from gcn_match_ros.bags import io as bag_io
 from gcn_match_ros.windowing import Frame, WindowAssembler, WindowConfig
@@ -47,7 +47,7 @@ def synthetic_frames(steps: int = 5, dim: int = 8, seed: int = 0, skip=((3, "cam
             calibrated = cam != "cam2"
             K = np.array([[500.0 + j, 0, 320], [0, 501.0, 240], [0, 0, 1]]) if calibrated else None
             frames[cam].append(Frame(
-                camera_id=cam, stamp=stamps.ns_to_seconds(1_700_000_000 * 10**9 + k * 10**8 + j * 2 * 10**6),
+                camera_id=cam, stamp_ns=1_700_000_000 * 10**9 + k * 10**8 + j * 2 * 10**6,
                 keypoints=rng.uniform(0, 600, (n, 2)).astype(np.float32),
                 descriptors=rng.normal(size=(n, dim)).astype(np.float32), frame_id=f"{cam}_optical_frame",
                 scales=rng.uniform(1, 9, n).astype(np.float32),
@@ -60,7 +60,8 @@ def synthetic_frames(steps: int = 5, dim: int = 8, seed: int = 0, skip=((3, "cam
 
 
 def assert_frames_equal(a: Frame, b: Frame, poses: bool = True) -> None:
-    assert (a.camera_id, a.stamp, a.frame_id, a.image_size) == (b.camera_id, b.stamp, b.frame_id, b.image_size)
+    assert (a.camera_id, a.stamp_ns, a.frame_id, a.image_size, a.binary) == \
+        (b.camera_id, b.stamp_ns, b.frame_id, b.image_size, b.binary)
     for name in ("keypoints", "descriptors", "scales", "orientations", "scores", "K"):
         x, y = getattr(a, name), getattr(b, name)
         assert (x is None) == (y is None), name
@@ -75,7 +76,7 @@ def assert_frames_equal(a: Frame, b: Frame, poses: bool = True) -> None:
 
 
 def in_stamp_order(frames_by_cam):
-    return sorted((f for fs in frames_by_cam.values() for f in fs), key=lambda f: (f.stamp, CAMS.index(f.camera_id)))
+    return sorted((f for fs in frames_by_cam.values() for f in fs), key=lambda f: (f.stamp_ns, CAMS.index(f.camera_id)))
 
 
 def test_typestore_matches_installed_messages():
@@ -102,10 +103,10 @@ def test_round_trip_frames_labels_windows(tmp_path, storage, name):
         for a, b, la, lb in zip(c.frames[cam], frames[cam], c.labels[cam], labels[cam]):
             assert_frames_equal(a, b)
             np.testing.assert_array_equal(la, lb)
-    assert [c.frames[cam][i].stamp for cam, i in c.order] == [f.stamp for f in in_stamp_order(frames)]
+    assert [c.frames[cam][i].stamp_ns for cam, i in c.order] == [f.stamp_ns for f in in_stamp_order(frames)]
 
     # windows: the bag's, and an assembler fed the original frames directly (as the node would)
-    label_of = {(f.camera_id, f.stamp): l for cam in CAMS for f, l in zip(frames[cam], labels[cam])}
+    label_of = {(f.camera_id, f.stamp_ns): l for cam in CAMS for f, l in zip(frames[cam], labels[cam])}
     for config in (WindowConfig(cameras=CAMS), WindowConfig(cameras=CAMS, max_keypoints=12, min_views=2)):
         direct = WindowAssembler(dataclasses.replace(config, descriptor_dim=8))
         expected = [w for f in in_stamp_order(frames) for w in direct.add(f)] + direct.flush()
@@ -117,21 +118,21 @@ def test_round_trip_frames_labels_windows(tmp_path, storage, name):
                 assert_frames_equal(a, b)
             parts = []
             for f in wb:
-                orig = next(o for o in frames[f.camera_id] if o.stamp == f.stamp)
+                orig = next(o for o in frames[f.camera_id] if o.stamp_ns == f.stamp_ns)
                 keep = np.arange(orig.count)
                 if orig.count > config.max_keypoints:
                     keep = np.sort(np.argsort(-orig.scores, kind="stable")[:config.max_keypoints])
-                parts.append(label_of[(f.camera_id, f.stamp)][keep])
+                parts.append(label_of[(f.camera_id, f.stamp_ns)][keep])
             np.testing.assert_array_equal(la, np.concatenate(parts))
 
 
 def test_binary_descriptors_and_uncalibrated_round_trip():
     rng = np.random.default_rng(1)
     bits = rng.integers(0, 2, (7, 256)).astype(np.float32)
-    f = Frame(camera_id="cam0", stamp=12.5, keypoints=rng.uniform(0, 9, (7, 2)).astype(np.float32),
-              descriptors=bits, frame_id="cam0_optical_frame")
+    f = Frame(camera_id="cam0", stamp_ns=12_500_000_000, keypoints=rng.uniform(0, 9, (7, 2)).astype(np.float32),
+              descriptors=bits, frame_id="cam0_optical_frame", binary=True, descriptor_name="orb")
     store = typesys.typestore()
-    msg = codec.keypoints_msg(f, "orb")
+    msg = codec.keypoints_msg(f)
     assert msg.descriptor_type == 1 and len(msg.descriptors_binary) == 7 * 32 and len(msg.descriptors) == 0
     back = codec.frame_from_keypoints_msg(store.deserialize_cdr(store.serialize_cdr(msg, typesys.KEYPOINTS_TYPE),
                                                                typesys.KEYPOINTS_TYPE))
@@ -187,7 +188,7 @@ def test_restamp_cdr_shifts_header_only():
     raw = bytes(store.serialize_cdr(msg, typesys.KEYPOINTS_TYPE))
     out = store.deserialize_cdr(bag_io.restamp_cdr(raw, 1_500_000_000), typesys.KEYPOINTS_TYPE)
     shifted = out.header.stamp.sec * 10**9 + out.header.stamp.nanosec
-    assert shifted == stamps.seconds_to_ns(frames["cam0"][0].stamp) + 1_500_000_000
+    assert shifted == frames["cam0"][0].stamp_ns + 1_500_000_000
     np.testing.assert_array_equal(out.keypoints, msg.keypoints)
     assert typesys.has_header(typesys.KEYPOINTS_TYPE) and typesys.has_header(typesys.POSE_TYPE)
     assert not typesys.has_header("geometry_msgs/msg/Pose") and not typesys.has_header("no_such_pkg/msg/Nothing")

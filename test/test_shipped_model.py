@@ -11,7 +11,7 @@ from gcn_match_ros.metrics import score_result
 from gcn_match_ros.learn.checkpoint import load_checkpoint
 from gcn_match_ros.problem import load_problem
 from gcn_match_ros.rounding import is_cycle_consistent
-from gcn_match_ros.solvers import get_solver
+from gcn_match_ros import solvers
 from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT, SHIPPED_MODELS
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -44,16 +44,16 @@ def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(
     scene = load_scene(DATA, "oxford/graf")  # Oxford: never trained on
     orb = make_problem(scene, (0, 1, 2), "orb", 500)
     sift = load_problem(HELD_OUT)
-    solver = get_solver("gcn")  # one solver instance serves both descriptor types
+    solver = solvers.create("gcn")  # one solver instance serves both descriptor types
     r_orb = solver.solve(orb)
     assert solver.checkpoint_path == str(SHIPPED_MODELS[(256, True)])
     r_sift = solver.solve(sift)
     assert solver.checkpoint_path == str(SHIPPED_MODELS[(128, False)])
-    assert score_result(orb, r_orb)["F1"] > score_result(orb, get_solver("nn").solve(orb))["F1"] + 0.02
+    assert score_result(orb, r_orb)["F1"] > score_result(orb, solvers.create("nn").solve(orb))["F1"] + 0.02
     assert is_cycle_consistent(r_orb.track, orb.view_index)
     assert r_sift.track.shape == (sift.n_keypoints,)
     # an explicit checkpoint is never switched, and a wrong descriptor dimension is a clear error
-    fixed = get_solver(f"gcn:checkpoint={SHIPPED_MODELS[(128, False)]}")
+    fixed = solvers.create(f"gcn:checkpoint={SHIPPED_MODELS[(128, False)]}")
     with pytest.raises(ValueError, match="260"):
         fixed.solve(orb)
     # descriptors no shipped model was trained for are refused, not matched by the wrong model:
@@ -71,8 +71,8 @@ def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(
 def test_shipped_model_beats_nn_on_held_out_and_is_cycle_consistent():
     torch.set_num_threads(1)
     problem = load_problem(HELD_OUT)
-    gcn = get_solver("gcn").solve(problem)
-    nn = get_solver("nn").solve(problem)
+    gcn = solvers.create("gcn").solve(problem)
+    nn = solvers.create("nn").solve(problem)
     f_gcn, f_nn = score_result(problem, gcn)["F1"], score_result(problem, nn)["F1"]
     assert f_gcn > f_nn + 0.02, (f_gcn, f_nn)
     assert is_cycle_consistent(gcn.track, problem.view_index)
@@ -91,19 +91,19 @@ def test_shipped_model_beats_mutual_nn_on_generated_scenes(one_torch_thread, pre
     f_gcn, f_nn = [], []
     for seed in range(3):
         problem = synthetic.random_scene_problem(getattr(synthetic, preset)(3), np.random.default_rng([11, seed]))
-        f_gcn.append(score_result(problem, get_solver("gcn").solve(problem))["F1"])
-        f_nn.append(score_result(problem, get_solver("nn:graph=mutual").solve(problem))["F1"])
+        f_gcn.append(score_result(problem, solvers.create("gcn").solve(problem))["F1"])
+        f_nn.append(score_result(problem, solvers.create("nn:graph=mutual").solve(problem))["F1"])
     assert np.mean(f_gcn) > np.mean(f_nn) + 0.02, (f_gcn, f_nn)
 
 
 def test_threshold_follows_the_model_unless_set():
-    solver = get_solver("gcn")
+    solver = solvers.create("gcn")
     sift_t = load_checkpoint(SHIPPED_MODELS[(128, False)])[1]["config"]["solver"]["threshold"]
     orb_t = load_checkpoint(SHIPPED_MODELS[(256, True)])[1]["config"]["solver"]["threshold"]
     assert solver.threshold == sift_t and solver.describe() == "gcn:model=shipped"
     solver._use(str(SHIPPED_MODELS[(256, True)]))
     assert solver.threshold == orb_t and solver.describe() == "gcn:model=shipped"
-    fixed = get_solver("gcn:threshold=0.45")
+    fixed = solvers.create("gcn:threshold=0.45")
     fixed._use(str(SHIPPED_MODELS[(256, True)]))
     assert fixed.threshold == 0.45
 
@@ -122,7 +122,7 @@ def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descr
         problem = synthetic.random_scene_problem(config, np.random.default_rng([12, seed]))
         assert problem.view_sizes.max() < MIN_SEEDS
         for spec in f:
-            result = get_solver(spec).solve(problem)
+            result = solvers.create(spec).solve(problem)
             assert is_cycle_consistent(result.track, problem.view_index)
             f[spec].append(score_result(problem, result)["F1"])
     assert np.mean(f["nn"]) > 0.1, f  # descriptors alone find some of the true pairs
@@ -133,6 +133,6 @@ def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descr
 def test_descriptor_fallback_leaves_normal_windows_alone(one_torch_thread):
     """No view below MIN_SEEDS keypoints: the fallback changes nothing (the benchmark tables hold)."""
     problem = load_problem(HELD_OUT)
-    a, b = get_solver("gcn").solve(problem), get_solver("gcn:descriptor_fallback=false").solve(problem)
+    a, b = solvers.create("gcn").solve(problem), solvers.create("gcn:descriptor_fallback=false").solve(problem)
     np.testing.assert_array_equal(a.track, b.track)
     np.testing.assert_array_equal(a.pair_scores, b.pair_scores)

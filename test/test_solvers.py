@@ -17,7 +17,8 @@ from gcn_match_ros.graph import CorrespondenceGraph
 from gcn_match_ros.metrics import score_result
 from gcn_match_ros.problem import Problem
 from gcn_match_ros.rounding import estimate_universe_size, is_cycle_consistent
-from gcn_match_ros.solvers import available_solvers, get_solver
+from gcn_match_ros import solvers
+from gcn_match_ros.solvers import available_solvers
 from gcn_match_ros.solvers.clear import clear
 from gcn_match_ros.solvers.matchals import matchals
 from gcn_match_ros.solvers.matcheig import matcheig
@@ -92,7 +93,7 @@ def corrupted_pairs(problem: Problem, fraction: float, seed: int = 0):
 
 
 def solve_and_score(spec: str, problem: Problem, graph: CorrespondenceGraph):
-    result = get_solver(spec).solve(problem, graph)
+    result = solvers.create(spec).solve(problem, graph)
     assert is_cycle_consistent(result.track, problem.view_index), f"{spec}: tracks not cycle-consistent"
     result.validate_against(problem)
     assert np.all((result.pair_scores >= 0) & (result.pair_scores <= 1))
@@ -122,7 +123,7 @@ def test_a_graph_without_edges_matches_nothing(name):
     unmatched, no error (matcheig used to index its scores with empty arrays and fail)."""
     prob = Problem(view_offsets=np.array([0, 1, 1, 3]), keypoints=np.zeros((3, 2)),
                    descriptors=np.eye(3, 16), gt_track=np.array([-1, -1, -1]), name="sparse")
-    result = get_solver(name).solve(prob, graph_from_pairs(prob, []))
+    result = solvers.create(name).solve(prob, graph_from_pairs(prob, []))
     np.testing.assert_array_equal(result.track, [-1, -1, -1])
 
 
@@ -157,20 +158,20 @@ def test_estimate_universe_size_counts_points():
 
 # -- settings ----------------------------------------------------------------------------------
 def test_get_solver_parses_settings():
-    s = get_solver("matchals:iters=7,alpha=20,rounding=greedy,graph=ratio0.8")
+    s = solvers.create("matchals:iters=7,alpha=20,rounding=greedy,graph=ratio0.8")
     assert (s.config.iters, s.config.alpha, s.config.rounding, s.config.graph) == (7, 20.0, "greedy", "ratio0.8")
     assert isinstance(s.config.iters, int) and s.describe().startswith("matchals:")
-    assert get_solver("spectral:universe=40").config.universe == "40"
-    assert get_solver("clear:isolate=true,soft=embedding").config.isolate is True
-    assert get_solver("matcheig:threshold=0.3,rounding=repair").config.threshold == 0.3
-    assert get_solver("pgdds:gamma=0.25,iters=5").config.gamma == 0.25
-    assert get_solver("quickmatch:rho_edge=0.8,candidates=all").config.rho_edge == 0.8
+    assert solvers.create("spectral:universe=40").config.universe == "40"
+    assert solvers.create("clear:isolate=true,soft=embedding").config.isolate is True
+    assert solvers.create("matcheig:threshold=0.3,rounding=repair").config.threshold == 0.3
+    assert solvers.create("pgdds:gamma=0.25,iters=5").config.gamma == 0.25
+    assert solvers.create("quickmatch:rho_edge=0.8,candidates=all").config.rho_edge == 0.8
     for name in SOLVERS:
-        assert get_solver(name).name == name  # defaults construct
+        assert solvers.create(name).name == name  # defaults construct
     for bad in ("matchals:iters=many", "matchals:nosuch=1", "spectral:universe=-3", "clear:soft=maybe",
                 "matcheig:rounding=best", "pgdds:gamma=2", "spectral:graph=nosuch"):
         with pytest.raises(ValueError):
-            get_solver(bad)
+            solvers.create(bad)
 
 
 def test_universe_setting_is_used():
@@ -240,7 +241,7 @@ def test_dense_methods_refuse_above_node_limit():
     with pytest.raises(ValueError, match="max_nodes=50"):
         quickmatch(prob.descriptors, prob.view_offsets, adjacency=None, max_nodes=50)
     with pytest.raises(ValueError, match="max_nodes"):
-        get_solver("matchals:max_nodes=50").solve(prob, graph_from_pairs(prob, true_pairs(prob)))
+        solvers.create("matchals:max_nodes=50").solve(prob, graph_from_pairs(prob, true_pairs(prob)))
     # the spectral methods decompose per connected component: only a large component is refused
     assert is_cycle_consistent(spectral(adj, prob.view_offsets, max_nodes=5), prob.view_index)
     connected = np.ones((90, 90))  # every cross-view pair: one component of 90 keypoints

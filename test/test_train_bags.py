@@ -10,7 +10,7 @@ from gcn_match_ros import cli
 from gcn_match_ros.bags.contents import read_bag
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.bags.make import write_problems_bag
-from gcn_match_ros.bags.source import BagSource, bag_scene, check_disjoint_scenes, node_window_config, split_by_scene
+from gcn_match_ros.bags.source import BagSource, bag_scene, check_disjoint_scenes, split_by_scene
 from gcn_match_ros.node_features import feature_dim
 from gcn_match_ros.learn.checkpoint import load_checkpoint
 from gcn_match_ros.learn.model import GCNConfig
@@ -18,7 +18,7 @@ from gcn_match_ros.learn.config import TrainConfig
 from gcn_match_ros.learn.objective import make_batch, make_sample, train_step
 from gcn_match_ros.learn.sources import ShardedSource, data_source
 from gcn_match_ros.learn.train import train
-from gcn_match_ros.windowing import WindowAssembler, window_problem
+from gcn_match_ros.windowing import WindowAssembler, WindowConfig, window_problem
 
 D = 16
 MODEL = GCNConfig(in_dim=feature_dim(D), widths=(16, 16, 16, 16), out_dim=16, groups=4, skip_layers=(2, 4))
@@ -56,12 +56,12 @@ def test_bag_source_windows_equal_assembler_on_bag_frames(tiny_bags):
     src = BagSource(train_bag, shuffle=False)
     # the node's assembly, by hand: frames in bag order into a WindowAssembler
     contents = read_bag(train_bag)
-    asm = WindowAssembler(node_window_config(contents.cameras, descriptor_dim=D))
+    asm = WindowAssembler(WindowConfig(cameras=tuple(contents.cameras)))
     windows = [w for f in contents.frames_in_order() for w in asm.add(f)] + asm.flush()
     assert len(src) == len(windows) == len(probs)
     assert [len(w) for w in windows] == [p.n_views for p in probs]  # the 2-view capture stays 2 views
     for k, (w, p, orig) in enumerate(zip(windows, src.problems, probs)):
-        assert src.window_frames[k] == (0, [(f.camera_id, f.stamp) for f in w])
+        assert src.window_frames[k] == (0, [(f.camera_id, f.stamp_ns) for f in w])
         ref = window_problem(w)
         np.testing.assert_array_equal(p.keypoints, ref.keypoints)
         np.testing.assert_array_equal(p.descriptors, ref.descriptors)
@@ -196,7 +196,7 @@ def test_gcn_match_train_errors_are_one_line(tmp_path, capsys, tiny_bags):
 def test_gcn_match_train_fine_tunes_the_shipped_model_from_a_bag(tmp_path, capsys):
     """--init the shipped model (edge head included) and train on the posed sample bag: the
     edge head's loss is trained and logged, and the result loads and solves."""
-    from gcn_match_ros.solvers import get_solver
+    from gcn_match_ros import solvers
     from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT
 
     bag = Path(__file__).resolve().parents[1] / "bags" / "strecha_fountain_sift.mcap"
@@ -209,5 +209,5 @@ def test_gcn_match_train_fine_tunes_the_shipped_model_from_a_bag(tmp_path, capsy
     model, meta = load_checkpoint(run / "checkpoint.pt")
     assert model.edge_head is not None and meta["config"]["train"]["edge_weight"] == 1.0
     problem = BagSource(bag, cycle=False).problems[0]
-    result = get_solver(f"gcn:checkpoint={run / 'checkpoint.pt'}").solve(problem)
+    result = solvers.create(f"gcn:checkpoint={run / 'checkpoint.pt'}").solve(problem)
     assert result.track.shape == (problem.n_keypoints,)

@@ -1,15 +1,18 @@
+"""Windowing (gcn_match_ros.windowing): the same windows online and offline, drops by reason."""
 import zlib
 
 import numpy as np
 import pytest
 
-from gcn_match_ros.windowing import Frame, FrameError, WindowAssembler, WindowConfig, validate_frame, window_problem
+from gcn_match_ros.stamps import seconds_to_ns
+from gcn_match_ros.windowing import (Frame, FrameError, WindowAssembler, WindowConfig, kept_rows, validate_frame,
+                                     window_parameters, window_problem)
 
 
-def frame(cam, stamp, n=5, dim=8, **kw):
+def frame(cam, seconds, n=5, dim=8, **kw):
     # deterministic per (camera, stamp); str hash() changes per process and stamps may be < 0
-    rng = np.random.default_rng([zlib.crc32(cam.encode()), int(round(stamp * 1000)) % 2 ** 32])
-    return Frame(camera_id=cam, stamp=stamp, keypoints=rng.uniform(0, 100, (n, 2)),
+    rng = np.random.default_rng([zlib.crc32(cam.encode()), int(round(seconds * 1000)) % 2 ** 32])
+    return Frame(camera_id=cam, stamp_ns=seconds_to_ns(seconds), keypoints=rng.uniform(0, 100, (n, 2)),
                  descriptors=rng.normal(size=(n, dim)), **kw)
 
 
@@ -23,6 +26,17 @@ def test_complete_window_emitted_at_once_in_camera_order():
     assert [f.camera_id for f in window] == ["a", "b", "c"]
     p = window_problem(window)
     assert p.n_views == 3 and p.n_keypoints == 15
+
+
+def test_tolerance_is_exact_to_the_nanosecond():
+    asm = WindowAssembler(WindowConfig(cameras=("a", "b"), sync_tolerance=0.01, max_delay=0.0))
+    base = 1_700_000_000 * 10**9
+    asm.add(Frame("a", base, np.zeros((2, 2)), np.ones((2, 4))))
+    (w,) = asm.add(Frame("b", base + 10_000_000, np.zeros((2, 2)), np.ones((2, 4))))  # exactly 10 ms: joins
+    assert [f.stamp_ns for f in w] == [base, base + 10_000_000]
+    asm.add(Frame("a", base + 10**9, np.zeros((2, 2)), np.ones((2, 4))))
+    asm.add(Frame("b", base + 10**9 + 10_000_001, np.zeros((2, 2)), np.ones((2, 4))))  # 1 ns too far
+    assert asm.drops["incomplete"] == 1
 
 
 def test_silent_camera_does_not_stop_windows():
@@ -53,6 +67,7 @@ def test_too_few_views_dropped_and_counted():
     (dict(descriptors=np.zeros((5, 16))), "descriptor_dim"),
     (dict(scales=np.ones(3)), "bad_shape"),
     (dict(K=np.ones((2, 2))), "bad_intrinsics"),
+    (dict(stamp_ns=1.5e9), "bad_stamp"),
 ])
 def test_bad_frames_are_counted_never_raised(bad, reason):
     asm = WindowAssembler(WindowConfig(cameras=CAMS, descriptor_dim=8))
@@ -61,17 +76,33 @@ def test_bad_frames_are_counted_never_raised(bad, reason):
         setattr(f, key, val)
     assert asm.add(f) == []
     assert asm.drops[reason] == 1
-    with pytest.raises(FrameError):
-        validate_frame(f, asm.config)
+    if reason != "bad_stamp":
+        with pytest.raises(FrameError):
+            validate_frame(f, asm.config, asm.descriptor_dim)
+
+
+def test_descriptor_dim_zero_takes_the_first_frames():
+    asm = WindowAssembler(WindowConfig(cameras=CAMS))
+    assert asm.descriptor_dim == 0
+    asm.add(frame("a", 1.0, dim=16))
+    assert asm.descriptor_dim == 16
+    asm.add(frame("b", 1.0, dim=8))
+    assert asm.drops["descriptor_dim"] == 1
+    asm.reconfigure(WindowConfig(cameras=CAMS, descriptor_dim=0))  # 0 again: the next frame decides
+    asm.add(frame("c", 1.0, dim=8))
+    assert asm.descriptor_dim == 8
+    with pytest.raises(ValueError, match="cameras"):
+        asm.reconfigure(WindowConfig(cameras=("a", "b")))
 
 
 def test_out_of_order_future_unknown_and_stale():
     asm = WindowAssembler(WindowConfig(cameras=CAMS, max_age=1.0, max_future=2.0))
-    asm.add(frame("a", 10.0), now=10.0)
-    asm.add(frame("a", 9.0), now=10.0)
-    asm.add(frame("a", 100.0), now=10.0)
+    now = seconds_to_ns(10.0)
+    asm.add(frame("a", 10.0), now_ns=now)
+    asm.add(frame("a", 9.0), now_ns=now)
+    asm.add(frame("a", 100.0), now_ns=now)
     asm.add(frame("z", 10.0))
-    asm.add(frame("b", 12.0), now=12.0)  # a@10 is now 2 s behind: stale
+    asm.add(frame("b", 12.0), now_ns=seconds_to_ns(12.0))  # a@10 is now 2 s behind: stale
     assert asm.drops["out_of_order"] == 1 and asm.drops["future"] == 1
     assert asm.drops["unknown_camera"] == 1 and asm.drops["stale"] == 1
 
@@ -85,6 +116,16 @@ def test_huge_frame_keeps_best_scored_keypoints():
     np.testing.assert_array_equal(clean.scores, np.arange(40.0, 50.0))
 
 
+def test_kept_rows_is_the_one_trimming_rule():
+    scores = np.array([0.1, 0.9, 0.5, 0.9, 0.2])
+    np.testing.assert_array_equal(kept_rows(5, scores, 3), [1, 2, 3])  # best three, original order
+    np.testing.assert_array_equal(kept_rows(5, None, 3), [0, 1, 2])  # no scores: the first
+    np.testing.assert_array_equal(kept_rows(5, scores, 9), np.arange(5))
+    f = frame("a", 0.0, n=5, scores=scores)
+    clean = validate_frame(f, WindowConfig(cameras=CAMS, max_keypoints=3))
+    np.testing.assert_array_equal(clean.keypoints, f.keypoints[kept_rows(5, scores, 3)].astype(np.float32))
+
+
 def test_uncalibrated_zero_k_becomes_none_and_buffers_are_bounded():
     assert validate_frame(frame("a", 0.0, K=np.zeros((3, 3)))).K is None
     asm = WindowAssembler(WindowConfig(cameras=CAMS, buffer_size=2, sync_tolerance=0.001, max_age=100))
@@ -93,13 +134,21 @@ def test_uncalibrated_zero_k_becomes_none_and_buffers_are_bounded():
     assert asm.drops["overflow"] == 3
 
 
+def test_window_parameters_are_the_config_defaults():
+    params = {p.name: p for p in window_parameters()}
+    assert list(params) == ["sync_tolerance", "max_delay", "min_views", "max_age", "max_keypoints", "descriptor_dim"]
+    cfg = WindowConfig(cameras=CAMS)
+    for name, p in params.items():
+        assert getattr(cfg, name) == p.default and p.doc and p.low <= p.default <= p.high
+
+
 def _run(order, **cfg):
     asm = WindowAssembler(WindowConfig(cameras=CAMS, sync_tolerance=0.01, **cfg))
     out = []
     for c, t in order:
         out += asm.add(frame(c, t))
     out += asm.flush()
-    return [[(f.camera_id, f.stamp) for f in w] for w in out], asm
+    return [[(f.camera_id, f.stamp_ns) for f in w] for w in out], asm
 
 
 def test_identical_windows_from_any_arrival_order():

@@ -2,8 +2,9 @@
 :class:`~gcn_match_ros.windowing.Frame` and the message, for rosbags messages (bags) and
 rclpy messages (``ros/conversions.py``) alike.
 
-The decoder reads attributes only, so it takes either kind of message and this core
-module never imports rclpy. Binary descriptors (ORB, ...) travel packed (``np.packbits``,
+The encoder (:func:`keypoints_fields`) gives the field values, which each side puts into
+its own message class; the decoder (:func:`frame_from_keypoints_msg`) reads attributes
+only, so it takes either kind of message and this core module never imports rclpy. Binary descriptors (ORB, ...) travel packed (``np.packbits``,
 MSB first) and are unpacked to 0/1 float32 columns in the Frame, as
 :func:`gcn_match_ros.detect.extract_features` gives them to the trainer. A malformed
 message raises :class:`~gcn_match_ros.windowing.FrameError` whose ``reason`` is a short
@@ -13,19 +14,20 @@ counter key (``count_mismatch``, ``bad_shape``, ``descriptor_type``, ``descripto
 from __future__ import annotations
 
 import array
-from typing import Optional
+from typing import Any, Dict, Optional
 
 import numpy as np
 
 from ..geometry import rt_to_pose
-from ..stamps import seconds_to_ns
+from ..stamps import ns_to_sec_nanosec, stamp_to_ns
 from ..windowing import Frame, FrameError
 from .typesys import CAMERA_INFO_TYPE, HEADER_TYPE, KEYPOINTS_TYPE, typestore
 
 __all__ = ["HARD_MAX_KEYPOINTS", "DESCRIPTOR_FLOAT", "DESCRIPTOR_BINARY", "BINARY_DESCRIPTORS", "WORLD_FRAME",
-           "keypoints_msg", "message_array", "frame_from_keypoints_msg", "header_msg", "camera_info_msg",
-           "pose_msg"]
+           "keypoints_fields", "camera_info_fields", "keypoints_msg", "message_array", "frame_from_keypoints_msg",
+           "header_msg", "camera_info_msg", "pose_msg"]
 
+#: Descriptor names that are binary, for frames made from problems (which keep no descriptor type).
 BINARY_DESCRIPTORS = ("orb", "brief", "brisk", "akaze", "freak")
 DESCRIPTOR_FLOAT, DESCRIPTOR_BINARY = 0, 1
 #: Keypoints messages announcing more keypoints than this are rejected (``too_large``)
@@ -36,12 +38,13 @@ WORLD_FRAME = "world"
 
 def header_msg(T, stamp_ns: int, frame_id: str):
     """A rosbags ``std_msgs/Header`` (``T``: the type store's types)."""
-    sec, nsec = divmod(int(stamp_ns), 10**9)
+    sec, nsec = ns_to_sec_nanosec(stamp_ns)
     return T[HEADER_TYPE](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id)
 
 
-def camera_info_msg(T, header, K: Optional[np.ndarray], image_size) -> object:
-    """A rosbags ``sensor_msgs/CameraInfo``: K (all zero when None: uncalibrated) and the image size."""
+def camera_info_fields(K: Optional[np.ndarray], image_size) -> Dict[str, Any]:
+    """The ``sensor_msgs/CameraInfo`` fields (but ``header`` and ``roi``) of an undistorted camera:
+    K (all zero when None: uncalibrated) and the image size (0 x 0 when None)."""
     w, h = (int(image_size[0]), int(image_size[1])) if image_size is not None else (0, 0)
     if K is None:
         k, p, d, model = np.zeros(9), np.zeros(12), np.zeros(0), ""
@@ -49,36 +52,51 @@ def camera_info_msg(T, header, K: Optional[np.ndarray], image_size) -> object:
         K = np.asarray(K, dtype=np.float64)
         k, p = K.ravel(), np.c_[K, np.zeros(3)].ravel()
         d, model = np.zeros(5), "plumb_bob"  # undistorted images
+    return dict(height=h, width=w, distortion_model=model, d=d, k=k, r=np.eye(3).ravel(), p=p, binning_x=0,
+                binning_y=0)
+
+
+def camera_info_msg(T, header, K: Optional[np.ndarray], image_size) -> object:
+    """A rosbags ``sensor_msgs/CameraInfo`` (:func:`camera_info_fields`)."""
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return T[CAMERA_INFO_TYPE](header=header, height=h, width=w, distortion_model=model, d=d, k=k,
-                               r=np.eye(3).ravel(), p=p, binning_x=0, binning_y=0, roi=roi)
+    return T[CAMERA_INFO_TYPE](header=header, roi=roi, **camera_info_fields(K, image_size))
 
 
 def _f32(a) -> np.ndarray:
     return np.zeros(0, np.float32) if a is None else np.ascontiguousarray(a, dtype=np.float32).ravel()
 
 
-def keypoints_msg(frame: Frame, descriptor_name: str = "sift", store=None):
-    """A rosbags ``gcn_match_msgs/msg/Keypoints`` for ``frame`` (stamp, frame_id, K and
-    image_size into the header and camera_info). Binary descriptor names
-    (:data:`BINARY_DESCRIPTORS`) expect 0/1 descriptors and pack them (np.packbits)."""
-    T = (store or typestore()).types
-    header = header_msg(T, seconds_to_ns(frame.stamp), frame.frame_id)
+def keypoints_fields(frame: Frame) -> Dict[str, Any]:
+    """The encoder: every ``Keypoints`` field of ``frame`` but ``header`` and ``camera_info``
+    (numpy arrays of the fields' element types, and scalars).
+
+    A binary frame (:attr:`Frame.binary`) must hold 0/1 descriptors; they travel packed
+    (``np.packbits``, MSB first) in ``descriptors_binary``, ``descriptor_dim`` counting bits.
+
+    Raises:
+        ValueError: a binary frame whose descriptors are not all 0 or 1.
+    """
     desc = np.asarray(frame.descriptors)
     n, dim = int(desc.shape[0]), int(desc.shape[1]) if desc.ndim == 2 else 0
-    binary = descriptor_name.lower() in BINARY_DESCRIPTORS
-    if binary:
+    if frame.binary:
         if np.any((desc != 0) & (desc != 1)):
-            raise ValueError(f"{descriptor_name} descriptors must be unpacked bits (0/1)")
+            raise ValueError(f"{frame.descriptor_name or 'binary'} descriptors must be unpacked bits (0/1)")
         packed = np.packbits(desc.astype(np.uint8), axis=1).ravel() if n else np.zeros(0, np.uint8)
-    return T[KEYPOINTS_TYPE](
-        header=header, camera_id=frame.camera_id,
-        camera_info=camera_info_msg(T, header, frame.K, frame.image_size), count=n,
-        keypoints=_f32(frame.keypoints), scales=_f32(frame.scales), orientations=_f32(frame.orientations),
-        scores=_f32(frame.scores), descriptor_type=DESCRIPTOR_BINARY if binary else DESCRIPTOR_FLOAT,
-        descriptor_name=descriptor_name.lower(), descriptor_dim=dim,
-        descriptors=np.zeros(0, np.float32) if binary else _f32(desc),
-        descriptors_binary=packed if binary else np.zeros(0, np.uint8))
+    return dict(camera_id=frame.camera_id, count=n, keypoints=_f32(frame.keypoints), scales=_f32(frame.scales),
+                orientations=_f32(frame.orientations), scores=_f32(frame.scores),
+                descriptor_type=DESCRIPTOR_BINARY if frame.binary else DESCRIPTOR_FLOAT,
+                descriptor_name=frame.descriptor_name.lower(), descriptor_dim=dim,
+                descriptors=np.zeros(0, np.float32) if frame.binary else _f32(desc),
+                descriptors_binary=packed if frame.binary else np.zeros(0, np.uint8))
+
+
+def keypoints_msg(frame: Frame, store=None):
+    """A rosbags ``gcn_match_msgs/msg/Keypoints`` for ``frame`` (:func:`keypoints_fields`; stamp,
+    frame_id, K and image_size into the header and camera_info)."""
+    T = (store or typestore()).types
+    header = header_msg(T, frame.stamp_ns, frame.frame_id)
+    return T[KEYPOINTS_TYPE](header=header, camera_info=camera_info_msg(T, header, frame.K, frame.image_size),
+                             **keypoints_fields(frame))
 
 
 def message_array(field, dtype) -> np.ndarray:
@@ -121,7 +139,6 @@ def frame_from_keypoints_msg(msg, camera_id: Optional[str] = None,
     n = int(msg.count)
     if n > max_count:
         raise FrameError("too_large", f"count {n} exceeds the limit of {max_count} keypoints")
-    stamp = int(msg.header.stamp.sec) + int(msg.header.stamp.nanosec) * 1e-9
     kp = message_array(msg.keypoints, np.float32)
     if kp.size != 2 * n:
         raise FrameError("count_mismatch", f"keypoints: {kp.size} values for count {n} (expected {2 * n})")
@@ -164,11 +181,12 @@ def frame_from_keypoints_msg(msg, camera_id: Optional[str] = None,
         raise FrameError("bad_intrinsics", "camera_info.k contains NaN or inf")
     K = k if np.any(k != 0.0) else None
     w, h = int(msg.camera_info.width), int(msg.camera_info.height)
-    return Frame(camera_id=cam, stamp=stamp, keypoints=kp.reshape(n, 2), descriptors=desc,
-                 frame_id=msg.header.frame_id, scales=optional(msg.scales, "scales"),
+    return Frame(camera_id=cam, stamp_ns=stamp_to_ns(msg.header.stamp), keypoints=kp.reshape(n, 2),
+                 descriptors=desc, frame_id=msg.header.frame_id, scales=optional(msg.scales, "scales"),
                  orientations=optional(msg.orientations, "orientations"),
                  scores=optional(msg.scores, "scores"), K=K,
-                 image_size=(w, h) if w > 0 and h > 0 else None)
+                 image_size=(w, h) if w > 0 and h > 0 else None,
+                 binary=msg.descriptor_type == DESCRIPTOR_BINARY, descriptor_name=str(msg.descriptor_name))
 
 
 def pose_msg(T, stamp_ns: int, R: np.ndarray, t: np.ndarray):

@@ -50,10 +50,11 @@ from pathlib import Path
 from typing import Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
+from tqdm import tqdm
 
 from ..geometry import pose_to_rt
-from ..stamps import ns_to_seconds, seconds_to_ns, stamp_to_ns
-from ..windowing import Frame, WindowAssembler, WindowConfig, validate_frame
+from ..stamps import ns_to_seconds, stamp_to_ns
+from ..windowing import Frame, WindowAssembler, WindowConfig, kept_rows
 from .codec import camera_info_msg, frame_from_keypoints_msg, header_msg, keypoints_msg, pose_msg
 from .io import BagError, BagReader, BagWriter
 from .typesys import CAMERA_INFO_TYPE, KEYPOINTS_TYPE, LABELS_TYPE, POSE_TYPE
@@ -63,29 +64,27 @@ __all__ = ["BagContents", "write_scene_bag", "read_bag", "bag_windows", "window_
 
 def write_scene_bag(path, frames_by_camera: Mapping[str, Sequence[Frame]],
                     labels: Optional[Mapping[str, Sequence[Optional[np.ndarray]]]] = None, *,
-                    storage: str = "mcap", descriptor_name: str = "sift", label_method: str = "",
+                    storage: str = "mcap", label_method: str = "",
                     sources: Optional[Mapping[str, Sequence[str]]] = None,
                     compress: bool = True, progress: bool = False) -> Path:
     """Write frames (and optional labels) as a bag in the layout of the module docstring.
 
-    Everything per frame comes from the :class:`Frame`: ``stamp`` (header stamp and log
+    Everything per frame comes from the :class:`Frame`: ``stamp_ns`` (header stamp and log
     time), ``frame_id`` (default ``<cam>_optical_frame``), ``K`` and ``image_size``
     (``camera_info``, embedded and on ``/<cam>/camera_info``), ``R, t`` (world->camera;
-    written as the camera->world ``/<cam>/pose``, only for frames that have them).
+    written as the camera->world ``/<cam>/pose``, only for frames that have them), the
+    descriptors as :func:`.codec.keypoints_fields` encodes them.
 
     Args:
         path: ``*.mcap`` -> a single mcap file; else a rosbag2 directory of ``storage``.
         frames_by_camera: camera id -> frames in stamp order (topic namespace = camera id).
         labels: camera id -> per-frame (N,) int labels (scene-global ids, -1, -2) or None,
             parallel to ``frames_by_camera``; published on ``/<cam>/gt_labels``.
-        descriptor_name: e.g. "sift" (float) or "orb" (0/1 bits, packed in the message).
         label_method, sources: ``KeypointLabels.method`` and per-frame ``.source`` strings.
 
     Returns:
         ``path``. The bag appears there only once complete (written aside, then renamed).
     """
-    from tqdm import tqdm
-
     items = []
     for order, (cam, frames) in enumerate(frames_by_camera.items()):
         cam_labels = (labels or {}).get(cam)
@@ -96,7 +95,7 @@ def write_scene_bag(path, frames_by_camera: Mapping[str, Sequence[Frame]],
             lab = cam_labels[i] if cam_labels is not None else None
             if lab is not None and len(lab) != f.count:
                 raise ValueError(f"labels of {cam} frame {i}: {len(lab)} values for {f.count} keypoints")
-            items.append((seconds_to_ns(f.stamp), order, f, lab, cam_sources[i] if cam_sources else ""))
+            items.append((int(f.stamp_ns), order, f, lab, cam_sources[i] if cam_sources else ""))
     items.sort(key=lambda x: (x[0], x[1]))
     with BagWriter(path, storage, compress) as bag:
         T = bag.store.types
@@ -114,7 +113,7 @@ def write_scene_bag(path, frames_by_camera: Mapping[str, Sequence[Frame]],
                 bag.write(f"/{cam}/gt_labels", LABELS_TYPE, ns, T[LABELS_TYPE](
                     header=header, camera_id=cam, labels=np.asarray(lab, dtype=np.int64),
                     method=label_method, source=src))
-            bag.write(f"/{cam}/keypoints", KEYPOINTS_TYPE, ns, keypoints_msg(f, descriptor_name, bag.store))
+            bag.write(f"/{cam}/keypoints", KEYPOINTS_TYPE, ns, keypoints_msg(f, bag.store))
     return Path(path)
 
 
@@ -132,7 +131,6 @@ class BagContents:
         sources: camera id -> per-frame ``KeypointLabels.source`` ("" if none).
         order: (camera id, index) of every frame in bag (log-time) order: the order a
             player publishes them, and the order :meth:`windows` feeds the assembler.
-        descriptor_names: camera id -> ``Keypoints.descriptor_name`` of its first frame.
     """
 
     path: Path
@@ -142,7 +140,6 @@ class BagContents:
     labels: Dict[str, List[Optional[np.ndarray]]]
     sources: Dict[str, List[str]]
     order: List[Tuple[str, int]]
-    descriptor_names: Dict[str, str]
 
     @property
     def cameras(self) -> List[str]:
@@ -159,12 +156,12 @@ class BagContents:
 
     def labels_of(self, frame: Frame) -> Optional[np.ndarray]:
         """Labels of a frame of this bag (looked up by camera id and stamp)."""
-        return self._index().get((frame.camera_id, frame.stamp), (None, None))[1]
+        return self._index().get((frame.camera_id, frame.stamp_ns), (None, None))[1]
 
-    def _index(self) -> Dict[Tuple[str, float], Tuple[Frame, Optional[np.ndarray]]]:
+    def _index(self) -> Dict[Tuple[str, int], Tuple[Frame, Optional[np.ndarray]]]:
         idx = getattr(self, "_idx", None)
         if idx is None:
-            idx = {(f.camera_id, f.stamp): (f, self.labels[c][i])
+            idx = {(f.camera_id, f.stamp_ns): (f, self.labels[c][i])
                    for c, fs in self.frames.items() for i, f in enumerate(fs)}
             object.__setattr__(self, "_idx", idx)
         return idx
@@ -172,18 +169,13 @@ class BagContents:
     def windows(self, config: WindowConfig, flush: bool = True
                 ) -> Iterator[Tuple[List[Frame], Optional[np.ndarray]]]:
         """Feed the frames to a :class:`WindowAssembler` in bag order, as the matcher node
-        does on replay (``add(frame)``; stamps in the past never hit ``max_future``; a
-        ``descriptor_dim`` of 0 is fixed by the first frame, as the node does), and
+        does on replay (``add(frame)``; stamps in the past never hit ``max_future``), and
         yield each window's frames (validated copies, views in ``config.cameras`` order)
         with their labels concatenated in the same rows as ``window_problem(frames)``
         ((N,) int64 scene-global labels, or None when a frame has none). ``flush``: also
         emit what is left at the end of the bag."""
         assembler = WindowAssembler(config)
         for frame in self.frames_in_order():
-            if assembler.config.descriptor_dim == 0 and frame.count > 0 and np.ndim(frame.descriptors) == 2:
-                # like the node: descriptor_dim 0 = take it from the first frame
-                assembler.config = dataclasses.replace(assembler.config,
-                                                       descriptor_dim=int(frame.descriptors.shape[1]))
             for window in assembler.add(frame):
                 yield window, self._window_labels(window, config)
         if flush:
@@ -194,22 +186,13 @@ class BagContents:
         parts = []
         idx = self._index()
         for f in window:
-            orig, lab = idx.get((f.camera_id, f.stamp), (None, None))
+            orig, lab = idx.get((f.camera_id, f.stamp_ns), (None, None))
             if lab is None or orig is None:
                 return None
             if orig.count != f.count:  # the assembler kept max_keypoints of them: same rows
-                lab = lab[_kept_rows(orig, config)]
+                lab = lab[kept_rows(orig.count, orig.scores, config.max_keypoints)]
             parts.append(np.asarray(lab, dtype=np.int64))
         return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-
-def _kept_rows(frame: Frame, config: WindowConfig) -> np.ndarray:
-    """Rows of ``frame`` that validate_frame keeps (it trims to max_keypoints): run it on a
-    copy whose descriptors are the row numbers."""
-    rows = np.arange(frame.count, dtype=np.float64)[:, None]
-    probe = dataclasses.replace(frame, descriptors=rows, orientations=None, scales=None, K=None)
-    cfg = dataclasses.replace(config, descriptor_dim=0)
-    return validate_frame(probe, cfg).descriptors[:, 0].astype(np.int64)
 
 
 def window_labels(labels: np.ndarray) -> np.ndarray:
@@ -239,8 +222,6 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
     Raises:
         BagError: missing, truncated or corrupt bag, or labels that do not fit their frame.
     """
-    from tqdm import tqdm
-
     with BagReader(path) as r:
         info = r.info()
         show = info.message_count > 500 if progress is None else progress
@@ -250,7 +231,6 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
         frame_ns: Dict[Tuple[str, int], Tuple[str, int]] = {}
         poses: Dict[Tuple[str, int], Tuple[np.ndarray, np.ndarray]] = {}
         labels: Dict[Tuple[str, int], Tuple[np.ndarray, str]] = {}
-        names: Dict[str, str] = {}
         wanted = {t for t, ty in info.topics.items() if ty in (KEYPOINTS_TYPE, LABELS_TYPE, POSE_TYPE)}
         bar = tqdm(total=info.message_count, desc=f"reading {Path(path).name}", unit="msg", disable=not show)
         with bar:
@@ -267,9 +247,8 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
                     cam = frame.camera_id or ns.strip("/") or topic
                     if frame.camera_id != cam:
                         frame = dataclasses.replace(frame, camera_id=cam)
-                    stamp_ns = stamp_to_ns(msg.header.stamp)
+                    stamp_ns = frame.stamp_ns
                     lst = frames.setdefault(cam, [])
-                    names.setdefault(cam, str(msg.descriptor_name))
                     frame_ns[(cam, stamp_ns)] = (cam, len(lst))
                     order.append((cam, len(lst)))
                     ns_of[(cam, stamp_ns)] = ns
@@ -296,7 +275,7 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
                                f"values for {frames[cam][i].count} keypoints")
             out_labels[cam][i], out_sources[cam][i] = lab
     return BagContents(path=Path(path), topics=info.topics, counts=info.counts, frames=frames,
-                       labels=out_labels, sources=out_sources, order=order, descriptor_names=names)
+                       labels=out_labels, sources=out_sources, order=order)
 
 
 def bag_windows(path, window_config: WindowConfig, progress: Optional[bool] = None

@@ -32,10 +32,11 @@ from tqdm import tqdm
 
 from ..data import labels as scene_labels
 from ..data.scenes import DatasetError, load_scene
-from ..detect import extract_features
+from ..detect import DETECTOR_KINDS, extract_features
 from ..problem import Problem
-from ..stamps import ns_to_seconds, seconds_to_ns
+from ..stamps import seconds_to_ns
 from ..windowing import Frame
+from .codec import BINARY_DESCRIPTORS
 from .contents import write_scene_bag
 
 __all__ = ["DEFAULT_SCENES", "bag_name", "convert_scene_to_bag", "write_problems_bag"]
@@ -101,15 +102,16 @@ def convert_scene_to_bag(data_root, scene: str, out_path, *, n_cameras: int = 3,
             v = k + j
             f = feats[v]
             frames[cam].append(Frame(
-                camera_id=cam, stamp=ns_to_seconds(start_ns + int(round(k * 1e9 / rate_hz)) + j * stagger_ns),
+                camera_id=cam, stamp_ns=start_ns + int(round(k * 1e9 / rate_hz)) + j * stagger_ns,
                 keypoints=f.keypoints, descriptors=f.descriptors, frame_id=f"{cam}_optical_frame",
                 scales=f.scales, orientations=f.orientations, scores=None,
                 K=None if sc.K is None else sc.K[v], image_size=tuple(int(x) for x in sc.image_sizes[v]),
-                R=None if sc.R is None else sc.R[v], t=None if sc.t is None else sc.t[v]))
+                R=None if sc.R is None else sc.R[v], t=None if sc.t is None else sc.t[v],
+                binary=DETECTOR_KINDS[detector][1], descriptor_name=detector))
             labels[cam].append(per_image[v])
             sources[cam].append(rel[v])
-    return write_scene_bag(out_path, frames, labels, storage=storage, descriptor_name=detector,
-                           label_method=method, sources=sources, progress=progress)
+    return write_scene_bag(out_path, frames, labels, storage=storage, label_method=method, sources=sources,
+                           progress=progress)
 
 
 def write_problems_bag(path, problems: Sequence[Problem], rate_hz: float = 2.0, stagger: float = 0.002,
@@ -119,6 +121,7 @@ def write_problems_bag(path, problems: Sequence[Problem], rate_hz: float = 2.0, 
     ``start_time + k / rate_hz``), its view j is camera ``cam<j>`` (stamped ``j * stagger``
     later), with K (``camera_info``), R, t (``/<cam>/pose``) and labels (``gt_track``, made
     scene-global by offsetting each problem's ids past the previous ones') when present.
+    ``descriptor_name`` names the problems' descriptors (binary ones: :data:`.codec.BINARY_DESCRIPTORS`).
     Replaying it into the node (or :class:`.source.BagSource`) gives back one window per problem.
     """
     V = max(p.n_views for p in problems)
@@ -135,13 +138,13 @@ def write_problems_bag(path, problems: Sequence[Problem], rate_hz: float = 2.0, 
         for j in range(p.n_views):
             s = p.view_slice(j)
             opt = (lambda a: None if a is None else a[s])  # noqa: E731
-            stamp = ns_to_seconds(base_ns + int(round(k * 1e9 / rate_hz)) + j * int(round(stagger * 1e9)))
+            stamp_ns = base_ns + int(round(k * 1e9 / rate_hz)) + j * int(round(stagger * 1e9))
             frames[cams[j]].append(Frame(
-                camera_id=cams[j], stamp=stamp, keypoints=p.keypoints[s], descriptors=p.descriptors[s],
+                camera_id=cams[j], stamp_ns=stamp_ns, keypoints=p.keypoints[s], descriptors=p.descriptors[s],
                 frame_id=f"{cams[j]}_optical_frame", scales=opt(p.scales), orientations=opt(p.orientations),
                 K=None if p.K is None else p.K[j],
                 image_size=None if p.image_size is None else tuple(int(x) for x in p.image_size[j]),
-                R=None if p.R is None else p.R[j], t=None if p.t is None else p.t[j]))
+                R=None if p.R is None else p.R[j], t=None if p.t is None else p.t[j],
+                binary=descriptor_name.lower() in BINARY_DESCRIPTORS, descriptor_name=descriptor_name))
             labels[cams[j]].append(None if gt is None else gt[s])
-    return write_scene_bag(path, frames, labels, storage=storage, descriptor_name=descriptor_name,
-                           label_method="problems")
+    return write_scene_bag(path, frames, labels, storage=storage, label_method="problems")

@@ -28,27 +28,13 @@ from ..problem import Problem
 from ..windowing import WindowConfig, window_problem
 from .contents import BagContents, read_bag, window_labels
 
-__all__ = ["BagSource", "BAG_SUFFIXES", "is_bag_path", "bag_files", "bag_scene", "node_window_config",
-           "split_by_scene", "check_disjoint_scenes"]
+__all__ = ["BagSource", "BAG_SUFFIXES", "is_bag_path", "bag_files", "bag_scene", "split_by_scene",
+           "check_disjoint_scenes"]
 
 #: File suffixes of single-file bags (a rosbag2 *directory* has a ``metadata.yaml``).
 BAG_SUFFIXES = (".mcap", ".db3")
 
-#: The matcher node's defaults for the window parameters (ros/matcher_node.py declares
-#: them; this module cannot import rclpy). Only ``max_keypoints`` differs from WindowConfig's.
-NODE_WINDOW_DEFAULTS = dict(sync_tolerance=0.05, max_delay=0.1, min_views=2, max_age=1.0,
-                            max_keypoints=1024, descriptor_dim=0)
-
 PathLike = Union[str, Path]
-
-
-def node_window_config(cameras: Sequence[str], **changes) -> WindowConfig:
-    """The WindowConfig the matcher node builds from its default parameters for ``cameras``
-    (``changes`` override single parameters, e.g. ``sync_tolerance=0.02``)."""
-    kw = dict(NODE_WINDOW_DEFAULTS)
-    kw.update(changes)
-    kw["min_views"] = min(int(kw["min_views"]), max(len(cameras), 2))
-    return WindowConfig(cameras=tuple(cameras), **kw)
 
 
 def is_bag_path(path: PathLike) -> bool:
@@ -146,8 +132,8 @@ class BagSource:
 
     Args:
         paths: bag files (``.mcap``, ``.db3``), rosbag2 directories, or directories of bags.
-        window_config: the matcher node's window settings; None = the node's defaults
-            (:func:`node_window_config`) with the cameras of each bag (natural order).
+        window_config: the matcher node's window settings; None = the defaults
+            (:class:`~gcn_match_ros.windowing.WindowConfig`) with the cameras of each bag (natural order).
         shuffle: new seeded random window order every epoch (``default_rng([seed, epoch])``).
         seed: seed of the shuffling.
         cycle: repeat forever (training) or stop after one pass (validation, evaluation).
@@ -157,7 +143,7 @@ class BagSource:
     Attributes:
         files: the bags; scenes: scene of each bag (:func:`bag_scene`);
         problems: the windows as problems (name ``<bag stem>:<window index>``);
-        window_frames: (bag index, [(camera id, stamp), ...]) of every window;
+        window_frames: (bag index, [(camera id, stamp ns), ...]) of every window;
 
     Raises:
         ValueError (:class:`.io.BagError` included): unreadable bag, a bag without windows,
@@ -178,7 +164,7 @@ class BagSource:
         for b, path in enumerate(self.files):
             contents = read_bag(path, progress=progress)
             self.scenes.append(_scene_of(contents))
-            config = window_config or node_window_config(contents.cameras)
+            config = window_config or WindowConfig(cameras=tuple(contents.cameras))
             n_before = len(self.problems)
             for frames, labels in contents.windows(config):
                 if min_views is not None and len(frames) < min_views:
@@ -188,7 +174,7 @@ class BagSource:
                     problem.gt_track = window_labels(labels)
                     problem.validate()
                 self.problems.append(problem)
-                self.window_frames.append((b, [(f.camera_id, f.stamp) for f in frames]))
+                self.window_frames.append((b, [(f.camera_id, f.stamp_ns) for f in frames]))
                 dims.setdefault(problem.descriptors.shape[1], path)
             if len(self.problems) == n_before:
                 raise ValueError(f"{path}: no matching windows with cameras {list(config.cameras)} "

@@ -20,16 +20,18 @@ training and at test time alike.
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 import torch
 
-from ..descriptors import normalize_descriptors
+from ..descriptors import NORMALIZATIONS
 from ..geometry import epipolar_distance_matrix, transfer
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
+from ..timing import stage
 from .verify import MIN_SEEDS, PairModel, fit_pair, residuals
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "EDGE_FEATURES", "RANK_CAP"]
@@ -44,7 +46,8 @@ RANK_CAP = 10  # descriptor ranks are features up to this value (min(rank, RANK_
 class EdgeConfig:
     """k: descriptor candidates per keypoint and view; geometry: fit H/F per view pair and
     add geometric features; guided: add geometry-guided candidates; guide_px: their
-    tolerance; ratio: Lowe ratio of the confident seed pairs."""
+    tolerance; ratio: Lowe ratio of the confident seed pairs; normalization: of the
+    descriptors before the cosine (:data:`gcn_match_ros.descriptors.NORMALIZATIONS`)."""
 
     k: int = 4
     geometry: bool = True
@@ -52,6 +55,10 @@ class EdgeConfig:
     guide_px: float = 3.0
     ratio: float = 0.8
     normalization: str = "rootsift"
+
+    def __post_init__(self) -> None:
+        if self.normalization not in NORMALIZATIONS:
+            raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
 
     def to_dict(self) -> Dict:
         return dataclasses.asdict(self)
@@ -99,9 +106,13 @@ class PairCandidates:
     guided: np.ndarray
 
 
-def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> EdgeSet:
-    """Candidate edges of ``problem`` with their features (see the module docstring)."""
-    desc = torch.from_numpy(normalize_descriptors(problem.descriptors, config.normalization))
+def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
+                    similarity: Optional[DescriptorSimilarity] = None) -> EdgeSet:
+    """Candidate edges of ``problem`` with their features (see the module docstring).
+
+    ``similarity``: the window's shared descriptor similarity (made here if None).
+    """
+    similarity = similarity if similarity is not None else DescriptorSimilarity(problem)
     offs = problem.view_offsets
     V = problem.n_views
     kp = problem.keypoints.astype(np.float64)
@@ -114,7 +125,7 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
             b0, b1 = int(offs[j]), int(offs[j + 1])
             if a1 - a0 < 2 or b1 - b0 < 2:
                 continue
-            parts.append(_pair_edges(desc[a0:a1], desc[b0:b1], kp[a0:a1], kp[b0:b1], config))
+            parts.append(_pair_edges(similarity.block(i, j, config.normalization), kp[a0:a1], kp[b0:b1], config))
             starts.append((a0, b0))
     if not parts:
         z = np.zeros(0, np.int64)
@@ -141,11 +152,9 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig()) -> Edge
     return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
 
 
-def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: np.ndarray,
-                config: EdgeConfig) -> PairCandidates:
-    """Candidates of one view pair and their per-pair features."""
-    na, nb = desc_a.shape[0], desc_b.shape[0]
-    sim_t = desc_a @ desc_b.T
+def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig) -> PairCandidates:
+    """Candidates of one view pair (a, b) and their per-pair features; ``sim_t`` (n_a, n_b) cosines."""
+    na, nb = sim_t.shape
     sim = sim_t.numpy()
     k = min(config.k, na, nb)
     # The RANK_CAP + 1 best similarities of every row and column, best first: the
@@ -171,11 +180,13 @@ def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: 
             # mutual nearest neighbours instead; the robust estimator copes with the outliers
             seed_a = np.flatnonzero(mutual_ab)
             seed_b = nn_r[seed_a]
-        model = fit_pair(xa[seed_a], xb[seed_b])
+        with stage("geometry"):
+            model = fit_pair(xa[seed_a], xb[seed_b])
         model = model.selected() if model is not None else None
     guided = np.zeros(ea.shape[0], bool)
     if config.guided and model is not None:
-        ga, gb = _guided(sim, xa, xb, model, config.guide_px)
+        with stage("geometry"):
+            ga, gb = _guided(sim, xa, xb, model, config.guide_px)
         ea = np.concatenate([ea, ga])
         eb = np.concatenate([eb, gb])
         guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
@@ -192,7 +203,8 @@ def _pair_edges(desc_a: torch.Tensor, desc_b: torch.Tensor, xa: np.ndarray, xb: 
     mutual = (rank_a == 0) & (rank_b == 0)
     conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
     if model is not None:
-        rh, rf = residuals(model, xa[ea], xb[eb])
+        with stage("geometry"):
+            rh, rf = residuals(model, xa[ea], xb[eb])
         kind = 2.0 if model.planar else 1.0
     else:
         rh = rf = np.full(ea.shape[0], np.inf)

@@ -1,7 +1,9 @@
 """Conversions between the ROS messages and the core types (no node, no executor needed).
 
-- ``gcn_match_msgs/Keypoints`` <-> :class:`gcn_match_ros.windowing.Frame`
-  (:func:`keypoints_to_frame`, :func:`frame_to_keypoints`);
+- ``gcn_match_msgs/Keypoints`` <- :class:`gcn_match_ros.windowing.Frame`
+  (:func:`frame_to_keypoints`: an rclpy message from :func:`gcn_match_ros.bags.codec.keypoints_fields`;
+  the other way is :func:`gcn_match_ros.bags.codec.frame_from_keypoints_msg`, which reads rclpy
+  and rosbags messages alike — one encoder, one decoder);
 - a window's frames + a solver's :class:`~gcn_match_ros.problem.Result` ->
   ``gcn_match_msgs/MatchWindow`` (:func:`result_to_match_window`), checked by
   :func:`validate_match_window` before anything is published;
@@ -9,35 +11,29 @@
   :func:`pairwise_matches`, :func:`soft_pairwise_matches`).
 
 Array fields are read with ``np.frombuffer`` (no copy, no per-element Python work) and
-filled with ``array.array(typecode, ndarray.tobytes())``. Binary descriptors (ORB, ...)
-travel packed (``np.packbits``, MSB first) and are unpacked to 0/1 float32 columns in the
-:class:`Frame`, as :func:`gcn_match_ros.detect.extract_features` gives them to the trainer.
-
-A malformed ``Keypoints`` message raises :class:`~gcn_match_ros.windowing.FrameError`
-whose ``reason`` is a short counter key (``count_mismatch``, ``bad_shape``,
-``descriptor_type``, ``descriptor_dim``, ``too_large``, ``bad_intrinsics``, ``bad_stamp``);
-an inconsistent result raises :class:`MatchWindowError` (a ``ValueError``) with a reason.
+filled with ``array.array(typecode, ndarray.tobytes())``. Stamps stay integer nanoseconds
+(:mod:`gcn_match_ros.stamps`). An inconsistent result raises :class:`MatchWindowError`
+(a ``ValueError``) with a counter reason.
 """
 from __future__ import annotations
 
 import array
 import dataclasses
-import math
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from gcn_match_msgs.msg import Keypoints, MatchWindow
+from sensor_msgs.msg import CameraInfo
 
-from ..bags.codec import HARD_MAX_KEYPOINTS, frame_from_keypoints_msg, message_array
+from ..bags.codec import camera_info_fields, keypoints_fields, message_array
 from ..problem import Result
 from ..rounding import relabel_tracks
-from ..windowing import Frame, FrameError
+from ..stamps import ns_to_sec_nanosec, stamp_to_ns
+from ..windowing import Frame
 
 __all__ = [
-    "HARD_MAX_KEYPOINTS", "DENSE_MAX_KEYPOINTS", "MatchWindowError",
-    "stamp_to_seconds", "seconds_to_stamp",
-    "keypoints_to_frame", "frame_to_keypoints",
+    "DENSE_MAX_KEYPOINTS", "MatchWindowError", "ns_to_time", "frame_to_keypoints",
     "result_to_match_window", "validate_match_window",
     "WindowArrays", "match_window_to_arrays", "window_tracks", "pairwise_matches",
     "soft_pairwise_matches",
@@ -59,86 +55,48 @@ class MatchWindowError(ValueError):
 # ---------------------------------------------------------------------------------------
 # Small helpers
 # ---------------------------------------------------------------------------------------
-def _f32(a) -> array.array:
-    return array.array("f", np.ascontiguousarray(a, np.float32).tobytes())
+_TYPECODES = {np.dtype(np.float32): "f", np.dtype(np.float64): "d", np.dtype(np.uint8): "B",
+              np.dtype(np.int32): "i", np.dtype(np.uint32): "I"}
 
 
-def _u32(a) -> array.array:
-    return array.array("I", np.ascontiguousarray(a, np.uint32).tobytes())
+def _seq(a, dtype) -> array.array:
+    """A numpy array as the ``array.array`` an rclpy sequence field takes without per-element checks."""
+    a = np.ascontiguousarray(a, dtype)
+    return array.array(_TYPECODES[a.dtype], a.tobytes())
 
 
-def _i32(a) -> array.array:
-    return array.array("i", np.ascontiguousarray(a, np.int32).tobytes())
-
-
-def _u8(a) -> array.array:
-    return array.array("B", np.ascontiguousarray(a, np.uint8).tobytes())
-
-
-def stamp_to_seconds(stamp) -> float:
-    """builtin_interfaces/Time -> float seconds."""
-    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
-
-
-def seconds_to_stamp(seconds: float) -> Time:
-    """float seconds -> builtin_interfaces/Time (nanoseconds rounded; negative clamps to 0)."""
-    if not math.isfinite(seconds) or seconds <= 0.0:
-        return Time()
-    ns = int(round(seconds * 1e9))
-    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+def ns_to_time(ns: int) -> Time:
+    """Integer nanoseconds -> builtin_interfaces/Time."""
+    sec, nanosec = ns_to_sec_nanosec(ns)
+    return Time(sec=sec, nanosec=nanosec)
 
 
 # ---------------------------------------------------------------------------------------
-# Keypoints <-> Frame
+# Frame -> Keypoints
 # ---------------------------------------------------------------------------------------
-def keypoints_to_frame(msg: Keypoints, camera_id: Optional[str] = None,
-                       max_count: int = HARD_MAX_KEYPOINTS) -> Frame:
-    """A ``Keypoints`` message as a :class:`Frame`: :func:`gcn_match_ros.bags.codec.frame_from_keypoints_msg`
-    (one decoder for live messages and bags; it raises :class:`FrameError` with a counter reason)."""
-    return frame_from_keypoints_msg(msg, camera_id=camera_id, max_count=max_count)
-
-
-def frame_to_keypoints(frame: Frame, descriptor_name: str = "", binary: bool = False,
-                       camera_info=None) -> Keypoints:
-    """A :class:`Frame` as a ``Keypoints`` message.
+def frame_to_keypoints(frame: Frame, camera_info: Optional[CameraInfo] = None) -> Keypoints:
+    """A :class:`Frame` as an rclpy ``Keypoints`` message (fields by :func:`keypoints_fields`).
 
     Args:
-        descriptor_name: e.g. ``"sift"``, ``"orb"``.
-        binary: pack the (0/1) descriptors as bits (``DESCRIPTOR_BINARY``; entries > 0.5 are 1).
-        camera_info: a ``sensor_msgs/CameraInfo`` to attach as is; default one built from
-            ``frame.K`` (all zero when None) and ``frame.image_size``.
+        camera_info: a ``sensor_msgs/CameraInfo`` to attach as is (e.g. the camera's own, with
+            distortion); default one from ``frame.K`` and ``frame.image_size``.
+
+    Raises:
+        ValueError: a binary frame whose descriptors are not 0/1.
     """
-    kp = np.asarray(frame.keypoints, np.float32).reshape(-1, 2)
-    n = kp.shape[0]
-    desc = np.asarray(frame.descriptors, np.float32)
-    if desc.ndim != 2:
-        desc = desc.reshape(n, -1) if n else np.zeros((0, 0), np.float32)
     msg = Keypoints()
-    msg.header.stamp = seconds_to_stamp(frame.stamp)
+    msg.header.stamp = ns_to_time(frame.stamp_ns)
     msg.header.frame_id = frame.frame_id or ""
-    msg.camera_id = frame.camera_id
+    for name, value in keypoints_fields(frame).items():
+        setattr(msg, name, _seq(value, value.dtype) if isinstance(value, np.ndarray) else value)
     if camera_info is not None:
         msg.camera_info = camera_info
     else:
+        fields = camera_info_fields(frame.K, frame.image_size)
         msg.camera_info.header = msg.header
-        if frame.K is not None:
-            msg.camera_info.k = np.asarray(frame.K, np.float64).reshape(9)
-        if frame.image_size is not None:
-            msg.camera_info.width, msg.camera_info.height = (int(v) for v in frame.image_size)
-    msg.count = n
-    msg.keypoints = _f32(kp)
-    for name in ("scales", "orientations", "scores"):
-        val = getattr(frame, name)
-        if val is not None:
-            setattr(msg, name, _f32(np.asarray(val, np.float32).reshape(n)))
-    msg.descriptor_name = descriptor_name
-    msg.descriptor_dim = int(desc.shape[1])
-    if binary:
-        msg.descriptor_type = Keypoints.DESCRIPTOR_BINARY
-        msg.descriptors_binary = _u8(np.packbits(desc > 0.5, axis=1))
-    else:
-        msg.descriptor_type = Keypoints.DESCRIPTOR_FLOAT
-        msg.descriptors = _f32(desc)
+        for name, value in fields.items():
+            # fixed-size arrays (k, r, p) take numpy float64, sequences (d) an array.array
+            setattr(msg.camera_info, name, _seq(value, np.float64) if name == "d" else value)
     return msg
 
 
@@ -148,16 +106,14 @@ def frame_to_keypoints(frame: Frame, descriptor_name: str = "", binary: bool = F
 def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_threshold: float = 0.0,
                            dense: bool = False, build_seconds: float = 0.0, solve_seconds: float = 0.0,
                            total_seconds: float = 0.0, latency_seconds: float = 0.0,
-                           method: Optional[str] = None, frame_id: str = "",
-                           view_stamps: Optional[Sequence[Time]] = None) -> MatchWindow:
+                           method: Optional[str] = None, frame_id: str = "") -> MatchWindow:
     """The MatchWindow of one solved window (views in ``frames`` order).
 
     Pairs with score > ``score_threshold`` go into the sparse COO fields. With ``dense`` and
     N <= :data:`DENSE_MAX_KEYPOINTS`, ``dense_scores`` holds the symmetric N×N matrix of all
     the result's pair scores (unthresholded) with 1 on the diagonal; above that size it stays
     empty. Track ids are renumbered 0..T-1 (keypoints alone in their track become -1).
-    ``view_stamps``: the views' exact header stamps (``Frame.stamp`` is float seconds, about
-    0.2 µs coarse at today's epoch); default: converted from ``Frame.stamp``.
+    ``view_stamps`` are the frames' stamps, exactly; the header stamp is the newest of them.
 
     Raises:
         MatchWindowError: the result does not fit the frames (never a wrong-shaped message).
@@ -191,28 +147,25 @@ def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_thr
         raise MatchWindowError("bad_result", "a track holds two keypoints of one view")
     scores = np.clip(scores, 0.0, 1.0)
 
-    if view_stamps is None or len(view_stamps) != len(frames) or any(s is None for s in view_stamps):
-        view_stamps = [seconds_to_stamp(f.stamp) for f in frames]
     msg = MatchWindow()
-    newest = max(range(len(frames)), key=lambda v: frames[v].stamp)
-    msg.header.stamp = view_stamps[newest]
+    msg.header.stamp = ns_to_time(max(f.stamp_ns for f in frames))
     msg.header.frame_id = frame_id
     msg.camera_ids = [f.camera_id for f in frames]
     msg.frame_ids = [f.frame_id or "" for f in frames]
-    msg.view_stamps = list(view_stamps)
-    msg.view_offsets = _u32(offsets)
+    msg.view_stamps = [ns_to_time(f.stamp_ns) for f in frames]
+    msg.view_offsets = _seq(offsets, np.uint32)
     keep = scores > score_threshold
-    msg.pair_rows = _u32(rows[keep])
-    msg.pair_cols = _u32(cols[keep])
-    msg.pair_scores = _f32(scores[keep])
+    msg.pair_rows = _seq(rows[keep], np.uint32)
+    msg.pair_cols = _seq(cols[keep], np.uint32)
+    msg.pair_scores = _seq(scores[keep], np.float32)
     msg.score_threshold = float(score_threshold)
     if dense and n <= DENSE_MAX_KEYPOINTS:
         d = np.zeros((n, n), np.float32)
         d[rows, cols] = scores
         d[cols, rows] = scores
         np.fill_diagonal(d, 1.0)
-        msg.dense_scores = _f32(d)
-    msg.track = _i32(track)
+        msg.dense_scores = _seq(d, np.float32)
+    msg.track = _seq(track, np.int32)
     msg.track_count = int(track.max(initial=-1) + 1)
     msg.method = method if method is not None else result.method
     msg.build_seconds = float(build_seconds)
@@ -272,7 +225,7 @@ class WindowArrays:
     """A MatchWindow as numpy arrays.
 
     Shapes:
-        camera_ids, frame_ids: V strings; view_stamps: (V,) float64 seconds; stamp: newest.
+        camera_ids, frame_ids: V strings; view_stamps_ns: (V,) int64 stamps; stamp_ns: the newest.
         view_offsets: (V+1,) int64. view_index, local_index: (N,) int64 — the view of each
             global keypoint row and its index in that view's Keypoints message.
         track: (N,) int64 (-1 unmatched), track_count: T.
@@ -282,8 +235,8 @@ class WindowArrays:
 
     camera_ids: List[str]
     frame_ids: List[str]
-    stamp: float
-    view_stamps: np.ndarray
+    stamp_ns: int
+    view_stamps_ns: np.ndarray
     view_offsets: np.ndarray
     view_index: np.ndarray
     local_index: np.ndarray
@@ -319,8 +272,8 @@ def match_window_to_arrays(msg: MatchWindow, validate: bool = True) -> WindowArr
     dense = message_array(msg.dense_scores, np.float32)
     return WindowArrays(
         camera_ids=list(msg.camera_ids), frame_ids=list(msg.frame_ids),
-        stamp=stamp_to_seconds(msg.header.stamp),
-        view_stamps=np.array([stamp_to_seconds(s) for s in msg.view_stamps], np.float64),
+        stamp_ns=stamp_to_ns(msg.header.stamp),
+        view_stamps_ns=np.array([stamp_to_ns(s) for s in msg.view_stamps], np.int64),
         view_offsets=offs, view_index=view_index, local_index=local,
         track=message_array(msg.track, np.int32).astype(np.int64), track_count=int(msg.track_count),
         pair_rows=message_array(msg.pair_rows, np.uint32).astype(np.int64),

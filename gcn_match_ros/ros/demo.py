@@ -33,7 +33,24 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
+import cv2
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from gcn_match_msgs.msg import Keypoints, MatchWindow
+
+from ..bags import BagError, read_bag
+from ..bags.contents import window_labels
+from ..metrics import score_result
+from ..problem import Problem, Result
+from ..solvers.gcn import DEFAULT_CHECKPOINT
+from ..stamps import stamp_to_ns
+from ..windowing import WindowConfig
+from .conversions import match_window_to_arrays
+from .dds import FASTDDS_PROFILE_ENV, use_large_shm
+from .spin import stop_node_process
+from .testing import RosSession, diagnostic_values
 
 REPO = Path(__file__).resolve().parents[2]
 CAMERAS = ("cam0", "cam1", "cam2")
@@ -85,63 +102,33 @@ class _Collector:
     """Subscribes the matcher's output, the replayed keypoints and labels, and /diagnostics."""
 
     def __init__(self, domain_id: int, cameras) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from rclpy.signals import SignalHandlerOptions
-
-        from gcn_match_msgs.msg import Keypoints, MatchWindow
-
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=domain_id, signal_handler_options=SignalHandlerOptions.NO)
-        self.node = rclpy.create_node("demo_scorer", context=self.ctx)
+        self.session = RosSession("demo_scorer", domain_id=domain_id)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.windows: List[Tuple[object, float]] = []  # (MatchWindow, receive wall time)
+        self.windows = self.session.collect(MatchWindow, "/matcher_node/matches", qos)
         # (camera, stamp ns) -> (Keypoints message, its index among the camera's frames)
         self.keypoints: Dict[Tuple[str, int], Tuple[object, int]] = {}
         self.per_camera = collections.Counter()
         self.diagnostics: List[dict] = []
-        self.node.create_subscription(MatchWindow, "/matcher_node/matches", self._on_window, qos)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos)
+        self.session.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, qos)
         for cam in cameras:
-            self.node.create_subscription(Keypoints, f"/{cam}/keypoints", self._on_keypoints, qos)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
+            self.session.node.create_subscription(Keypoints, f"/{cam}/keypoints", self._on_keypoints, qos)
 
     def _on_keypoints(self, msg) -> None:
         # Frames of one camera arrive in bag order (reliable, one publisher): the i-th message
         # of a camera is frame i of that camera in the bag, whatever the restamping did.
-        self.keypoints[_key(msg.camera_id, msg.header.stamp)] = (msg, self.per_camera[msg.camera_id])
+        self.keypoints[(str(msg.camera_id), stamp_to_ns(msg.header.stamp))] = (msg, self.per_camera[msg.camera_id])
         self.per_camera[msg.camera_id] += 1
 
-    def _on_window(self, msg) -> None:
-        self.windows.append((msg, time.time()))
-
     def _on_diag(self, msg) -> None:
-        for st in msg.status:
-            if st.hardware_id == "/matcher_node":
-                self.diagnostics.append({kv.key: kv.value for kv in st.values})
+        found = diagnostic_values(msg, "/matcher_node")
+        if found is not None:
+            self.diagnostics.append(found[1])
 
     def spin_until(self, cond, timeout: float) -> bool:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if cond():
-                return True
-            self.executor.spin_once(timeout_sec=0.02)
-        return bool(cond())
+        return self.session.spin_until(cond, timeout)
 
     def close(self) -> None:
-        import rclpy
-
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
-
-
-def _key(camera_id: str, stamp) -> Tuple[str, int]:
-    return str(camera_id), int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+        self.session.close()
 
 
 # ---------------------------------------------------------------------------------------
@@ -150,15 +137,10 @@ def _key(camera_id: str, stamp) -> Tuple[str, int]:
 def score_window(msg, col: _Collector, contents) -> Optional[dict]:
     """P/R/F1 of one MatchWindow against the bag's ground-truth labels (scene-global point
     ids of each view's frame); None when a view's frame or labels are unknown."""
-    from ..bags.contents import window_labels
-    from ..metrics import score_result
-    from ..problem import Problem, Result
-    from .conversions import match_window_to_arrays
-
     w = match_window_to_arrays(msg)
     labels, kps, sources = [], [], []
     for cam, stamp in zip(w.camera_ids, msg.view_stamps):
-        entry = col.keypoints.get(_key(cam, stamp))
+        entry = col.keypoints.get((cam, stamp_to_ns(stamp)))
         if entry is None or entry[1] >= len(contents.labels.get(cam, [])):
             return None
         kp, index = entry
@@ -185,8 +167,6 @@ def draw_windows(rows: List[dict], out: Path, data_root: Path, height: int = 260
     """One row per window, its views side by side; lines join consecutive keypoints of each track
     (green: same ground-truth point, red: different points, yellow: not labelled).
     Returns what the views are drawn on."""
-    import cv2
-
     on_images = True
     row_imgs = []
     for k, r in enumerate(rows):
@@ -253,10 +233,6 @@ def _check_model(solver: str, checkpoint: str) -> Optional[str]:
     """A clear message when the gcn solver's model is missing, else None."""
     if not solver.split(":")[0].strip() == "gcn":
         return None
-    try:
-        from ..solvers.gcn import DEFAULT_CHECKPOINT
-    except ImportError as exc:
-        return f"the gcn solver cannot be imported ({exc}); run with --solver nn to see the pipeline"
     path = Path(checkpoint) if checkpoint else Path(DEFAULT_CHECKPOINT)
     if not path.is_file():
         which = "the checkpoint" if checkpoint else "the model shipped in the package"
@@ -281,9 +257,6 @@ def main(argv=None) -> int:
     if bag is None:
         _log(f"demo: error: bag '{args.bag}' not found (looked in {', '.join(str(d) for d in _bag_dirs())})")
         return 1
-    from ..bags import BagError, read_bag
-    from ..windowing import WindowConfig
-
     try:
         contents = read_bag(bag, progress=False)
     except BagError as exc:
@@ -293,9 +266,6 @@ def main(argv=None) -> int:
     expected = sum(1 for _ in contents.windows(WindowConfig(cameras=cameras), flush=False))
     _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
          f"{expected} windows; solver {args.solver}")
-
-    from . import FASTDDS_PROFILE_ENV, use_large_shm
-    from .spin import stop_node_process
 
     env = dict(os.environ)
     use_large_shm(env)  # bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
@@ -328,7 +298,7 @@ def main(argv=None) -> int:
     try:
         col = _Collector(domain, cameras)
         deadline = t_start + args.timeout
-        up = col.spin_until(lambda: node.poll() is not None or col.node.count_publishers("/matcher_node/matches") > 0,
+        up = col.spin_until(lambda: node.poll() is not None or col.session.node.count_publishers("/matcher_node/matches") > 0,
                             timeout=max(1.0, deadline - time.monotonic()))
         if node.poll() is not None or not up:
             log_fh.flush()
@@ -368,16 +338,14 @@ def main(argv=None) -> int:
     _log("")
     _log(f"{'window':>6} {'views':>5} {'keypoints':>9} {'tracks':>6} {'P':>6} {'R':>6} {'F1':>6} "
          f"{'latency':>9} {'compute':>9}")
-    t0 = None
-    for k, (msg, received) in enumerate(col.windows):
+    for k, msg in enumerate(col.windows):
         r = score_window(msg, col, contents)
         w = r["arrays"] if r else None
         lat_ms = 1e3 * msg.latency_seconds
         if r is None:
             _log(f"{k + 1:>6}  (no ground truth received for this window)")
             continue
-        t0 = w.stamp if t0 is None else t0
-        r.update(latency=msg.latency_seconds, receive=received - w.stamp, compute=msg.total_seconds)
+        r.update(latency=msg.latency_seconds, compute=msg.total_seconds)
         rows.append(r)
         _log(f"{k + 1:>6} {w.n_views:>5} {w.n_keypoints:>9} {w.track_count:>6} {r['P']:>6.3f} {r['R']:>6.3f} "
              f"{r['F1']:>6.3f} {lat_ms:>6.1f} ms {1e3 * msg.total_seconds:>6.1f} ms")

@@ -5,7 +5,7 @@ to the matcher's output) and turns every window into
 
 - **tracks**: one list per scene point of ``(view, keypoint index)`` — the keypoint index
   is the row in that view's ``Keypoints`` message (camera ``window.camera_ids[view]``,
-  stamp ``window.view_stamps[view]``); tracks are cycle-consistent (at most one keypoint
+  stamp ``window.view_stamps[view]``, ns in ``WindowArrays.view_stamps_ns``); tracks are cycle-consistent (at most one keypoint
   per view), so they can go straight into triangulation / bundle adjustment;
 - **pairwise matches** per view pair (i, j): a (K, 2) array of keypoint indices in view i
   and view j (from the tracks), and the soft scores of the listed pairs if you want to
@@ -28,6 +28,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gcn_match_msgs.msg import MatchWindow
 
+from ..stamps import ns_to_seconds
 from .conversions import (MatchWindowError, match_window_to_arrays, pairwise_matches, soft_pairwise_matches,
                           window_tracks)
 
@@ -50,7 +51,7 @@ def summarize(msg: MatchWindow, min_score: float = 0.5) -> dict:
     soft = soft_pairwise_matches(w, min_score=min_score)
     lengths = collections.Counter(len(t) for t in tracks)
     per_pair = ", ".join(f"{w.camera_ids[i]}-{w.camera_ids[j]}: {len(m)}" for (i, j), m in sorted(pairs.items()))
-    text = (f"window {w.stamp:.3f}: {w.n_views} views, {w.n_keypoints} keypoints, {len(tracks)} tracks "
+    text = (f"window {ns_to_seconds(w.stamp_ns):.3f}: {w.n_views} views, {w.n_keypoints} keypoints, {len(tracks)} tracks "
             f"(length: {', '.join(f'{k}x{n}' for k, n in sorted(lengths.items())) or '-'}); "
             f"matches {per_pair or 'none'}; {sum(len(s) for s, _ in soft.values())} soft pairs > {min_score}; "
             f"latency {1e3 * w.latency_seconds:.1f} ms ({w.method})")

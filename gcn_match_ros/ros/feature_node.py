@@ -25,7 +25,6 @@ from typing import Optional
 
 import cv2
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.node import Node
 
@@ -35,9 +34,10 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from gcn_match_msgs.msg import Keypoints
 
-from ..detect import extract_features
+from ..detect import DETECTOR_KINDS, extract_features
+from ..stamps import stamp_to_ns
 from ..windowing import Frame
-from .conversions import frame_to_keypoints, stamp_to_seconds
+from .conversions import frame_to_keypoints
 
 __all__ = ["FeatureNode", "ImageError", "image_to_gray", "DETECTORS", "main"]
 
@@ -172,14 +172,11 @@ class FeatureNode(Node):
             self.get_logger().warning(f"camera_info is {info.width}x{info.height} but the image is {w}x{h}: "
                                       "not attached", throttle_duration_sec=_THROTTLE_S)
             info = None
-        frame = Frame(camera_id=self._camera_id, stamp=stamp_to_seconds(msg.header.stamp),
+        frame = Frame(camera_id=self._camera_id, stamp_ns=stamp_to_ns(msg.header.stamp),
                       keypoints=feats.keypoints, descriptors=feats.descriptors, frame_id=msg.header.frame_id,
-                      scales=feats.scales, orientations=feats.orientations, image_size=(w, h))
-        out = frame_to_keypoints(frame, descriptor_name=detector, binary=detector == "orb", camera_info=info)
-        out.header = msg.header  # exact stamp, no float round trip
-        if info is None:
-            out.camera_info.header = msg.header
-            out.camera_info.width, out.camera_info.height = w, h
+                      scales=feats.scales, orientations=feats.orientations, image_size=(w, h),
+                      binary=DETECTOR_KINDS[detector][1], descriptor_name=detector)
+        out = frame_to_keypoints(frame, camera_info=info)  # without camera_info: the image size, uncalibrated
         self._pub.publish(out)
         with self._lock:
             self.keypoints_published += 1

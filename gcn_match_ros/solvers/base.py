@@ -1,23 +1,25 @@
 """One interface for every multi-view matching method.
 
 A solver turns a :class:`~gcn_match_ros.problem.Problem` into a
-:class:`~gcn_match_ros.problem.Result` in three timed steps:
+:class:`~gcn_match_ros.problem.Result` in timed steps:
 
-1. build the correspondence graph from the descriptors (``graph_config``),
-2. ``match(problem, graph)`` — the method itself — returning :class:`SoftMatches`
+1. ``prepare(problem)`` (e.g. the learned solver picks the model for the descriptors),
+2. build the correspondence graph from the descriptors (``graph_config``),
+3. ``match(problem, graph, similarity)`` — the method itself — returning :class:`SoftMatches`
    (sparse scores between keypoints of different views) and optionally its own tracks,
-3. round the scores to cycle-consistent tracks (:func:`~gcn_match_ros.rounding.greedy_tracks`)
+4. round the scores to cycle-consistent tracks (:func:`~gcn_match_ros.rounding.greedy_tracks`)
    unless the method rounded itself.
 
-The node, the benchmarks and the command line only use :meth:`Solver.solve`, so any
-registered method can be selected by name, with settings as ``name:key=value,...``.
+The node, the benchmarks and the command line only use :meth:`Solver.solve` on solvers made
+by :func:`gcn_match_ros.solvers.create`, so any registered method can be selected by name,
+with settings as ``name:key=value,...``.
 """
 from __future__ import annotations
 
 import abc
 import dataclasses
 import time
-from typing import Any, ClassVar, Dict, Optional, Type
+from typing import Any, ClassVar, Dict, Optional, Tuple, Type
 
 import numpy as np
 import torch
@@ -25,9 +27,10 @@ import torch
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..problem import Problem, Result
 from ..rounding import greedy_tracks
+from ..similarity import DescriptorSimilarity
+from ..timing import StageTimes, stage
 
-__all__ = ["SoftMatches", "Solver", "SolverConfig", "register", "get_solver", "available_solvers",
-           "parse_method", "GRAPH_PRESETS"]
+__all__ = ["SoftMatches", "Solver", "SolverConfig", "build_config"]
 
 @dataclasses.dataclass
 class SoftMatches:
@@ -139,18 +142,31 @@ class SolverConfig:
 
 
 class Solver(abc.ABC):
-    """Base class of all methods; subclasses set ``name``, ``Config`` and implement :meth:`match`."""
+    """Base class of all methods; subclasses set ``name``, ``Config`` and implement :meth:`match`.
+
+    Attributes:
+        descriptor_kinds: (dimension, binary) of the descriptors the solver takes; () = any
+            (a learned model takes only its training descriptors).
+        needs_graph: :meth:`solve` builds the correspondence graph for :meth:`match` (False:
+            the method makes its own candidates and gets ``graph=None``).
+    """
 
     name: ClassVar[str]
     Config: ClassVar[Type[SolverConfig]] = SolverConfig
+    needs_graph: ClassVar[bool] = True
 
     def __init__(self, config: Optional[SolverConfig] = None, **settings: Any) -> None:
         if config is not None and settings:
             raise ValueError("give either a config or keyword settings, not both")
-        self.config = config if config is not None else _build_config(self.Config, settings)
+        self.config = config if config is not None else build_config(self.Config, settings)
+
+    @property
+    def descriptor_kinds(self) -> Tuple[Tuple[int, bool], ...]:
+        return ()
 
     @property
     def graph_config(self) -> GraphConfig:
+        """The correspondence graph :meth:`solve` builds (read after :meth:`prepare`)."""
         return GRAPH_PRESETS[self.config.graph]
 
     @property
@@ -165,9 +181,17 @@ class Solver(abc.ABC):
                 if getattr(self.config, f.name) != getattr(default, f.name)]
         return self.name + (":" + ",".join(diff) if diff else "")
 
+    def prepare(self, problem: Problem) -> None:
+        """Set up for ``problem`` before anything is built (e.g. choose the model that takes its
+        descriptors); raises ``ValueError`` for a problem the solver cannot take."""
+
     @abc.abstractmethod
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
-        """Run the method on one graph.
+    def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity):
+        """Run the method on one window.
+
+        Args:
+            graph: the correspondence graph (``graph_config``), None when ``needs_graph`` is False.
+            similarity: the window's descriptor similarity blocks, shared with the graph.
 
         Returns:
             (SoftMatches, track or None): scores between keypoints of different views, and
@@ -175,56 +199,35 @@ class Solver(abc.ABC):
         """
 
     def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None) -> Result:
-        """Graph build (unless ``graph`` is given, e.g. a synthetic noisy graph) + match + rounding, timed."""
+        """Prepare + graph build (unless ``graph`` is given, e.g. a synthetic noisy graph) + match +
+        rounding. ``Result.seconds`` is the wall time, ``Result.timings`` its stages
+        (:mod:`gcn_match_ros.timing`: graph, similarity, match, rounding and the method's own)."""
+        times = StageTimes()
         start = time.perf_counter()
-        if graph is None:
-            graph = build_graph(problem, self.graph_config)
-        soft, track = self.match(problem, graph)
-        if track is None:
-            track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
-                                  soft.scores, self.threshold)
+        with times.recording():
+            self.prepare(problem)
+            similarity = DescriptorSimilarity(problem)
+            if graph is None and self.needs_graph:
+                with stage("graph"):
+                    graph = build_graph(problem, self.graph_config, similarity)
+            with stage("match"):
+                soft, track = self.match(problem, graph, similarity)
+            if track is None:
+                with stage("rounding"):
+                    track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
+                                          soft.scores, self.threshold)
         seconds = time.perf_counter() - start
         return Result(track=track, pair_rows=soft.rows, pair_cols=soft.cols, pair_scores=soft.scores,
-                      seconds=seconds, method=self.describe())
+                      seconds=seconds, method=self.describe(), timings=times.seconds)
 
 
-_REGISTRY: Dict[str, Type[Solver]] = {}
+def build_config(config_cls: Type[SolverConfig], settings: Dict[str, Any]) -> SolverConfig:
+    """A solver configuration from settings; string values (command line, ``name:key=value``) are
+    read as the field's type.
 
-
-def register(cls: Type[Solver]) -> Type[Solver]:
-    """Class decorator adding a solver to the registry under ``cls.name``."""
-    if cls.name in _REGISTRY:
-        raise ValueError(f"solver '{cls.name}' registered twice")
-    _REGISTRY[cls.name] = cls
-    return cls
-
-
-def available_solvers() -> list:
-    return sorted(_REGISTRY)
-
-
-def parse_method(spec: str):
-    """``"matchals:iters=50,graph=mutual"`` -> ("matchals", {"iters": "50", "graph": "mutual"})."""
-    name, _, rest = spec.partition(":")
-    settings = {}
-    for item in filter(None, rest.split(",")):
-        key, eq, value = item.partition("=")
-        if not eq or not key:
-            raise ValueError(f"method '{spec}': setting '{item}' is not key=value")
-        settings[key.strip()] = value.strip()
-    return name.strip(), settings
-
-
-def get_solver(spec: str, **settings: Any) -> Solver:
-    """A solver from ``name`` or ``name:key=value,...`` (string values are converted to the field types)."""
-    name, parsed = parse_method(spec)
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown method '{name}'; available: {', '.join(available_solvers())}")
-    parsed.update(settings)
-    return _REGISTRY[name](**parsed)
-
-
-def _build_config(config_cls: Type[SolverConfig], settings: Dict[str, Any]) -> SolverConfig:
+    Raises:
+        ValueError: an unknown setting (the message lists the known ones) or a value that does not read.
+    """
     fields = {f.name: f for f in dataclasses.fields(config_cls)}
     kwargs = {}
     for key, value in settings.items():

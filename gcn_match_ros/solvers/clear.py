@@ -31,9 +31,11 @@ import scipy.sparse as sp
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ..rounding import relabel_tracks, tracks_to_pairs
 from ._sync import check_inputs, check_spectral_settings, component_eigh, parse_universe, sparse_soft_matches
-from .base import SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 __all__ = ["clear", "clear_embedding", "CLEARConfig", "CLEARSolver"]
 
@@ -180,7 +182,7 @@ class CLEARSolver(Solver):
     name = "clear"
     Config = CLEARConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         u, m, offs = clear_embedding(graph.adjacency(), graph.view_offsets, cfg.universe, cfg.max_nodes)
         track = relabel_tracks(clear_labels(u, m, offs, cfg.isolate))

@@ -11,7 +11,7 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Tuple
 
 import numpy as np
 import torch
@@ -24,8 +24,11 @@ from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
 from ..node_features import feature_dim
-from ..problem import Problem, Result
-from .base import SoftMatches, Solver, SolverConfig, register
+from ..problem import Problem
+from ..similarity import DescriptorSimilarity
+from ..timing import stage
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 from .nn import NNSolver
 
 __all__ = ["GCNSolver", "GCNSolverConfig", "DEFAULT_CHECKPOINT", "SHIPPED_MODELS"]
@@ -115,7 +118,7 @@ class GCNSolver(Solver):
             return ((dim, False), (dim, True))
         return tuple(k for k, p in sorted(SHIPPED_MODELS.items()) if p.is_file())
 
-    def _select_model(self, problem: Problem) -> None:
+    def prepare(self, problem: Problem) -> None:
         """With no checkpoint setting, switch to the shipped model for this descriptor kind.
 
         Raises:
@@ -134,6 +137,7 @@ class GCNSolver(Solver):
 
     @property
     def graph_config(self) -> GraphConfig:
+        """The graph the model was trained on (``graph=checkpoint``), else the preset."""
         if self.config.graph == "checkpoint":
             return self.meta["graph_config"]
         return GRAPH_PRESETS[self.config.graph]
@@ -142,30 +146,30 @@ class GCNSolver(Solver):
         base = super().describe()
         return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
 
-    def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None) -> Result:
-        self._select_model(problem)
-        return super().solve(problem, graph)
-
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         if problem.n_keypoints == 0:
             return SoftMatches.from_graph(graph), None
         with torch.inference_mode():
-            emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
-                                   graph=graph)
+            with stage("network"):
+                emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
+                                       graph=graph)
             if has_edge_head(self.model):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
-                es = candidate_edges(problem, edge_config_of(self.model))
+                with stage("candidates"):
+                    es = candidate_edges(problem, edge_config_of(self.model), similarity)
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
-                soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
+                with stage("edge_head"):
+                    soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
                 if self.config.descriptor_fallback and edge_config_of(self.model).geometry:
-                    soft = _with_descriptor_matches(problem, soft)
+                    with stage("candidates"):
+                        soft = _with_descriptor_matches(problem, soft, similarity)
                 return soft, None
         return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                           top_k=self.config.top_k), None
 
 
-def _with_descriptor_matches(problem: Problem, soft: SoftMatches) -> SoftMatches:
+def _with_descriptor_matches(problem: Problem, soft: SoftMatches, similarity: DescriptorSimilarity) -> SoftMatches:
     """``soft`` plus the ``nn`` solver's matches (mutual NN, ratio 0.8, score = cosine) on every
     view pair with a view of fewer than ``edges.verify.MIN_SEEDS`` keypoints, the larger score
     where both have a pair (:attr:`GCNSolverConfig.descriptor_fallback`). Unchanged when no view
@@ -174,7 +178,7 @@ def _with_descriptor_matches(problem: Problem, soft: SoftMatches) -> SoftMatches
     if not small.any():
         return soft
     nn_solver = NNSolver()
-    nn, _ = nn_solver.match(problem, build_graph(problem, nn_solver.graph_config))
+    nn, _ = nn_solver.match(problem, build_graph(problem, nn_solver.graph_config, similarity), similarity)
     view = problem.view_index
     keep = small[view[nn.rows]] | small[view[nn.cols]]
     n = problem.n_keypoints

@@ -31,9 +31,11 @@ from scipy.linalg import cho_factor, cho_solve
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ..rounding import greedy_tracks
 from ._sync import check_inputs, check_node_limit, parse_universe, repair_tracks, zhou_rounding
-from .base import SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 __all__ = ["matchals", "matchals_factor", "MatchALSConfig", "MatchALSSolver"]
 
@@ -191,7 +193,7 @@ class MatchALSSolver(Solver):
     name = "matchals"
     Config = MatchALSConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         offs = graph.view_offsets
         x, a = matchals_factor(graph.adjacency(), offs, cfg.universe, cfg.alpha, cfg.beta, cfg.iters,

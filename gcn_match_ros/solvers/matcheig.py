@@ -27,10 +27,12 @@ import scipy.sparse as sp
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ..rounding import greedy_tracks
 from ._sync import (check_inputs, check_spectral_settings, component_eigh, repair_tracks,
                     resolve_universe_size, select_eigvecs, sparse_soft_matches, view_index_of)
-from .base import SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 __all__ = ["matcheig", "matcheig_scores", "matcheig_pairs", "MatchEIGConfig", "MatchEIGSolver"]
 
@@ -182,7 +184,7 @@ class MatchEIGSolver(Solver):
     name = "matcheig"
     Config = MatchEIGConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         offs = graph.view_offsets
         z = matcheig_scores(graph.adjacency(), offs, cfg.universe, cfg.max_nodes)

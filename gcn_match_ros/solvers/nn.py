@@ -5,7 +5,9 @@ import dataclasses
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
-from .base import SoftMatches, Solver, SolverConfig, register
+from ..similarity import DescriptorSimilarity
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 
 @dataclasses.dataclass
@@ -24,5 +26,5 @@ class NNSolver(Solver):
     name = "nn"
     Config = NNConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         return SoftMatches.from_graph(graph, values=graph.cosine), None

@@ -11,20 +11,23 @@ descriptor-best within ``px`` of the epipolar line), scored by their cosine.
 from __future__ import annotations
 
 import dataclasses
-
-import numpy as np
+from typing import Optional
 
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
-from .base import SoftMatches, Solver, SolverConfig, register
+from ..similarity import DescriptorSimilarity
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 _F = {n: i for i, n in enumerate(EDGE_FEATURES)}
 
 
 @dataclasses.dataclass
 class NNRansacConfig(SolverConfig):
-    graph: str = "ratio0.8"
+    """Settings: px, the residual (pixels) a pair may have under its view pair's model; guided,
+    add the geometry-guided candidates. The ``graph`` setting is not used (no graph is built)."""
+
     threshold: float = 0.0
     px: float = 3.0
     guided: bool = False
@@ -36,10 +39,11 @@ class NNRansacSolver(Solver):
 
     name = "nn-ransac"
     Config = NNRansacConfig
+    needs_graph = False  # the candidate edges hold the mutual nearest neighbours already
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity):
         es = candidate_edges(problem, EdgeConfig(k=1, guided=self.config.guided, guide_px=self.config.px,
-                                                 normalization="l2"))
+                                                 normalization="l2"), similarity)
         f = es.features
         ok_geo = (f[:, _F["has_model"]] == 0) | (es.res_px < self.config.px)
         base = f[:, _F["confident"]] > 0

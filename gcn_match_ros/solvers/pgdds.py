@@ -31,9 +31,11 @@ from scipy.optimize import linear_sum_assignment
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ..rounding import relabel_tracks
 from ._sync import check_inputs, check_node_limit, parse_universe, resolve_universe_size
-from .base import SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 __all__ = ["pgdds", "pgdds_assignment", "PGDDSConfig", "PGDDSSolver"]
 
@@ -215,7 +217,7 @@ class PGDDSSolver(Solver):
     name = "pgdds"
     Config = PGDDSConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         offs = graph.view_offsets
         x = pgdds_assignment(graph.adjacency(), offs, cfg.universe, cfg.gamma, cfg.iters, cfg.seed,

@@ -32,9 +32,11 @@ import torch
 from ..descriptors import normalize_descriptors
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ..rounding import relabel_tracks
 from ._sync import check_node_limit, view_index_of
-from .base import SoftMatches, Solver, SolverConfig, register
+from .base import SoftMatches, Solver, SolverConfig
+from .registry import register
 
 __all__ = ["quickmatch", "QuickMatchConfig", "QuickMatchSolver"]
 
@@ -82,7 +84,6 @@ def _candidate_edges(desc: torch.Tensor, offs: np.ndarray, adjacency):
     """Directed candidate edges (both directions) with their descriptor distances."""
     view = view_index_of(offs)
     if adjacency is None:
-        n = desc.shape[0]
         rows, cols = np.nonzero(view[:, None] != view[None, :])
     else:
         a = sp.coo_matrix(adjacency)
@@ -218,7 +219,7 @@ class QuickMatchSolver(Solver):
     name = "quickmatch"
     Config = QuickMatchConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         adjacency = graph.adjacency() if cfg.candidates == "graph" else None
         track, soft = _run(problem.descriptors, graph.view_offsets, adjacency, cfg.rho_density,

@@ -22,9 +22,11 @@ import scipy.sparse as sp
 
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
+from ..similarity import DescriptorSimilarity
 from ._sync import (_normalise_rows, check_inputs, check_spectral_settings, component_eigh,
                     resolve_universe_size, select_eigvecs, sparse_soft_matches, zhou_rounding)
-from .base import Solver, SolverConfig, register
+from .base import Solver, SolverConfig
+from .registry import register
 
 __all__ = ["spectral", "spectral_embedding", "SpectralConfig", "SpectralSolver"]
 
@@ -99,7 +101,7 @@ class SpectralSolver(Solver):
     name = "spectral"
     Config = SpectralConfig
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
         cfg = self.config
         offs = graph.view_offsets
         v, _ = spectral_embedding(graph.adjacency(), offs, cfg.universe, cfg.max_nodes)

@@ -1,0 +1,90 @@
+"""The matcher node's parameters as data: name, default, description, range, read-only.
+
+The window parameters (``sync_tolerance``, ``max_delay``, ...) and their defaults come from
+:class:`gcn_match_ros.windowing.WindowConfig` (:func:`~gcn_match_ros.windowing.window_parameters`),
+the one place that also forms windows offline; the rest belong to the node. :func:`declare`
+declares them on a node with ROS parameter descriptors (types, ranges, read-only), so invalid
+values are refused by rclpy with a reason before the node sees them.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Dict, Optional, Tuple
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.node import Node
+
+from ..solvers import available_solvers
+from ..windowing import window_parameters
+
+__all__ = ["ParameterSpec", "MATCHER_PARAMETERS", "WINDOW_PARAMETER_NAMES", "INPUT_QOS", "declare", "values"]
+
+#: Accepted values of the ``input_qos`` parameter.
+INPUT_QOS = ("sensor_data", "reliable")
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterSpec:
+    """One node parameter: its default decides its type; ``low``/``high`` bound numbers."""
+
+    name: str
+    default: Any
+    description: str
+    read_only: bool = False
+    low: Optional[float] = None
+    high: Optional[float] = None
+    constraints: str = ""
+
+    def descriptor(self) -> ParameterDescriptor:
+        d = ParameterDescriptor(description=self.description, read_only=self.read_only,
+                                additional_constraints=self.constraints)
+        d.type = _TYPES[type(self.default)]
+        if self.low is not None and isinstance(self.default, bool):
+            raise ValueError(f"{self.name}: a bool parameter has no range")
+        if self.low is not None and isinstance(self.default, int):
+            d.integer_range = [IntegerRange(from_value=int(self.low), to_value=int(self.high), step=1)]
+        elif self.low is not None:
+            d.floating_point_range = [FloatingPointRange(from_value=float(self.low), to_value=float(self.high),
+                                                         step=0.0)]
+        return d
+
+
+_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+          list: ParameterType.PARAMETER_STRING_ARRAY}
+
+_WINDOW = tuple(ParameterSpec(p.name, p.default, p.doc, low=p.low, high=p.high, constraints=p.constraints)
+                for p in window_parameters())
+WINDOW_PARAMETER_NAMES = tuple(p.name for p in _WINDOW)
+
+#: Every parameter of the matcher node, in declaration order.
+MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
+    ParameterSpec("cameras", ["cam0", "cam1", "cam2"],
+                  "Camera ids, in window order; subscribes <camera>/keypoints for each.", read_only=True,
+                  constraints="at least 2 distinct ids"),
+    *_WINDOW,
+    ParameterSpec("solver", "gcn", "Matching method, 'name' or 'name:key=value,...'; one of "
+                                   f"{', '.join(available_solvers())}.", read_only=True),
+    ParameterSpec("checkpoint", "", "GCN checkpoint file; empty: the model shipped in the package for each "
+                                    "window's descriptors.", read_only=True),
+    ParameterSpec("device", "cpu", "Torch device of the gcn solver: cpu, cuda or cuda:<index>.", read_only=True),
+    ParameterSpec("score_threshold", 0.1, "Pairs scoring above it are listed in MatchWindow.pair_*.",
+                  low=0.0, high=1.0),
+    ParameterSpec("dense_output", False, "Also publish the dense N x N score matrix (windows up to 4096 keypoints)."),
+    ParameterSpec("input_qos", "sensor_data", "QoS of the keypoint subscriptions: sensor_data (best effort, "
+                                              "depth 5) or reliable (depth 10).", read_only=True,
+                  constraints=" | ".join(INPUT_QOS)),
+    ParameterSpec("diagnostics_period", 1.0, "Period of /diagnostics reports [s].", read_only=True,
+                  low=0.05, high=60.0),
+)
+
+
+def declare(node: Node, specs: Tuple[ParameterSpec, ...] = MATCHER_PARAMETERS) -> None:
+    """Declare ``specs`` on ``node`` (overrides from the command line or a params file apply)."""
+    for spec in specs:
+        node.declare_parameter(spec.name, spec.default, spec.descriptor())
+
+
+def values(node: Node, specs: Tuple[ParameterSpec, ...] = MATCHER_PARAMETERS) -> Dict[str, Any]:
+    """The current value of every parameter of ``specs``."""
+    return {spec.name: node.get_parameter(spec.name).value for spec in specs}

@@ -1,0 +1,100 @@
+"""Descriptor similarity of a window's view pairs, computed once per pair and shared.
+
+The correspondence graph (:func:`gcn_match_ros.graph.build_graph`), the candidate edges
+(:func:`gcn_match_ros.edges.candidates.candidate_edges`) and the descriptor fallback of the
+``gcn`` solver all read cosine similarities of one view pair's descriptors. A
+:class:`DescriptorSimilarity` made for the window computes each ``(normalization, i, j)``
+block once, on first use, and hands the same tensor to every later reader. Blocks are kept
+up to ``budget_bytes`` (least recently used go first), so a huge window's memory stays
+bounded; a block evicted and asked for again is computed again (``recomputed`` counts it).
+
+Different normalizations are different similarities: the shipped models build their graph
+from L2-normalised descriptors and score candidates from RootSIFT ones, so such a window
+has two blocks per view pair, each computed once.
+"""
+from __future__ import annotations
+
+import collections
+from typing import Dict, Tuple
+
+import torch
+
+from .descriptors import NORMALIZATIONS, normalize_descriptors
+from .problem import Problem
+from .timing import stage
+
+__all__ = ["DescriptorSimilarity"]
+
+Key = Tuple[str, int, int]
+
+
+class DescriptorSimilarity:
+    """Cosine similarity blocks of one problem's view pairs (see the module docstring).
+
+    Args:
+        problem: the window.
+        budget_bytes: most bytes of blocks kept at once.
+
+    Attributes:
+        computed, recomputed: blocks computed, and of those computed again after eviction.
+    """
+
+    def __init__(self, problem: Problem, budget_bytes: int = 256 * 2**20) -> None:
+        self._descriptors = problem.descriptors
+        self._offsets = problem.view_offsets
+        self._budget = int(budget_bytes)
+        self._normalized: Dict[str, torch.Tensor] = {}
+        self._blocks: "collections.OrderedDict[Key, torch.Tensor]" = collections.OrderedDict()
+        self._seen: set = set()
+        self._bytes = 0
+        self.computed = 0
+        self.recomputed = 0
+
+    def normalized(self, normalization: str) -> torch.Tensor:
+        """(N, D) float32 unit rows (:func:`descriptors.normalize_descriptors`), computed once."""
+        if normalization not in NORMALIZATIONS:
+            raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
+        d = self._normalized.get(normalization)
+        if d is None:
+            with stage("similarity"):
+                d = torch.from_numpy(normalize_descriptors(self._descriptors, normalization))
+            self._normalized[normalization] = d
+        return d
+
+    def view(self, v: int, normalization: str) -> torch.Tensor:
+        """(n_v, D) normalised descriptors of view v."""
+        return self.normalized(normalization)[int(self._offsets[v]):int(self._offsets[v + 1])]
+
+    def block(self, i: int, j: int, normalization: str) -> torch.Tensor:
+        """(n_i, n_j) float32 cosines between views i and j; ``block(j, i)`` is its transpose,
+        the same memory."""
+        if i > j:
+            return self.block(j, i, normalization).T
+        key = (normalization, int(i), int(j))
+        blk = self._blocks.get(key)
+        if blk is not None:
+            self._blocks.move_to_end(key)
+            return blk
+        di, dj = self.view(i, normalization), self.view(j, normalization)
+        with stage("similarity"):
+            blk = di @ dj.T
+        self.computed += 1
+        if key in self._seen:
+            self.recomputed += 1
+        self._seen.add(key)
+        size = blk.numel() * blk.element_size()
+        if size <= self._budget:
+            self._blocks[key] = blk
+            self._bytes += size
+            while self._bytes > self._budget:
+                _, old = self._blocks.popitem(last=False)
+                self._bytes -= old.numel() * old.element_size()
+        return blk
+
+    @property
+    def cached_bytes(self) -> int:
+        return self._bytes
+
+    def __repr__(self) -> str:
+        return (f"DescriptorSimilarity({len(self._offsets) - 1} views, {len(self._blocks)} blocks cached, "
+                f"{self.computed} computed, {self.recomputed} recomputed)")
