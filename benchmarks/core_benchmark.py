@@ -17,48 +17,32 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from gcn_match_ros import solvers
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.data.permutation_noise import PAPER_SYNTHETIC_ROWS, permutation_noise_problem
+from gcn_match_ros.evaluation import evaluate, format_table
+from gcn_match_ros.experiments import results_header
+from gcn_match_ros.metrics import mean_scores, score_result
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from gcn_match_ros.data import synthetic  # noqa: E402
-from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
-from gcn_match_ros.metrics import mean_scores, score_result  # noqa: E402
-from gcn_match_ros import solvers
-from gcn_match_ros.solvers import available_solvers  # noqa: E402
 
 ROW_TIMEOUT_S = 120  # a scaling row that takes longer is reported as stopped
 SYNC_METHODS = ("spectral", "matchals", "pgdds", "matcheig", "clear", "quickmatch")
 
 
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import torch
-
-    return f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} ({torch.get_num_threads()} threads), " \
-           f"Python {platform.python_version()}"
-
-
 def rome16k_section(n_problems: int, out) -> dict:
     methods_by_graph = {
         "paper soft kNN (k = 4)": ["gcn", "nn:graph=mutual"] +
-        [f"{m}:graph=knn4" for m in SYNC_METHODS if m in available_solvers()],
-        "binary mutual NN": [f"{m}:graph=mutual" for m in SYNC_METHODS if m in available_solvers()],
+        [f"{m}:graph=knn4" for m in SYNC_METHODS if m in solvers.available_solvers()],
+        "binary mutual NN": [f"{m}:graph=mutual" for m in SYNC_METHODS if m in solvers.available_solvers()],
     }
     results = {}
     for n_views in (3, 4):
@@ -73,11 +57,11 @@ def rome16k_section(n_problems: int, out) -> dict:
 
 
 def paper_protocol_section(n_problems: int, out) -> dict:
-    methods = ["gcn", "nn:graph=mutual"] + [m for m in SYNC_METHODS if m in available_solvers()]
+    methods = ["gcn", "nn:graph=mutual"] + [m for m in SYNC_METHODS if m in solvers.available_solvers()]
     results = {}
     out("\n| row | " + " | ".join(methods) + " |")
     out("|---|" + "---|" * len(methods))
-    for row, kw in synthetic.PAPER_SYNTHETIC_ROWS.items():
+    for row, kw in PAPER_SYNTHETIC_ROWS.items():
         cells = []
         for spec in methods:
             solver = solvers.create(spec)
@@ -85,8 +69,8 @@ def paper_protocol_section(n_problems: int, out) -> dict:
             for i in range(n_problems):
                 # 128-D descriptors so that the SIFT-trained GCN gets node features of its size; the
                 # protocol's noise lives in the graph, which every method receives as given.
-                problem, graph = synthetic.permutation_noise_problem(3, descriptor_dim=128,
-                                                                     rng=np.random.default_rng([11, i]), **kw)
+                problem, graph = permutation_noise_problem(3, descriptor_dim=128,
+                                                           rng=np.random.default_rng([11, i]), **kw)
                 try:
                     scores.append(score_result(problem, solver.solve(problem, graph=graph)))
                 except ValueError as exc:
@@ -186,17 +170,17 @@ def goals_section(rome: dict, scaling: list, out) -> None:
                 f"{'reached' if ok else 'NOT reached'}.")
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="few problems and sizes (smoke run)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "core_benchmark.md")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     n_rome, n_paper, reps = (2, 2, 1) if args.quick else (6, 8, 3)
     # 4 × 500 is the size of the speed goal.
     sizes = [(3, 100), (4, 500)] if args.quick else [(4, 500)] + [(v, n) for v in (3, 5, 10) for n in (100, 500, 1000)]
     # Synthetic descriptors defeat Lowe's ratio test (see section 1), so the dense methods get
     # the binary mutual-NN graph here.
-    dense = [f"{m}:graph=mutual" for m in ("matchals", "matcheig", "clear") if m in available_solvers()]
+    dense = [f"{m}:graph=mutual" for m in ("matchals", "matcheig", "clear") if m in solvers.available_solvers()]
 
     lines = []
 
@@ -205,9 +189,9 @@ def main() -> None:
         lines.append(s)
 
     started = time.time()
-    out("# Core benchmark\n")
-    out(f"Command: `OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/core_benchmark.py{' --quick' if args.quick else ''}`  ")
-    out(f"Machine: {machine()}  ")
+    for line in results_header("Core benchmark", __file__, argv, torch_threads=torch.get_num_threads(),
+                               env=("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")):
+        out(line)
     out(f"Date: {time.strftime('%Y-%m-%d')}\n")
     out("Scores: P/R/F1 of the hard cycle-consistent tracks, AP of the soft scores, same/different-point "
         "similarity without the diagonal, the paper's L1/L2 (beaten by the identity row, kept for comparison "
@@ -216,7 +200,7 @@ def main() -> None:
     out("\n## 1. Rome16K-style synthetic scenes")
     rome = rome16k_section(n_rome, out)
     out("\n## 2. The paper's synthetic protocol (3 views, p = 25, 128-D descriptors; methods get the noisy graph)\n")
-    out("Rows as in `synthetic.PAPER_SYNTHETIC_ROWS`; each cell: mean F1 · mean L1 · median time.")
+    out("Rows as in `permutation_noise.PAPER_SYNTHETIC_ROWS`; each cell: mean F1 · mean L1 · median time.")
     paper_protocol_section(n_paper, out)
     out("\n## 3. Scaling: graph build + matching, time and peak memory (fresh process per row)\n")
     scaling = scaling_section(sizes, dense, reps, out)

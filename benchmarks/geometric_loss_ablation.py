@@ -23,27 +23,21 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+import numpy as np
+import torch
 
-import torch  # noqa: E402
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.evaluation import evaluate
+from gcn_match_ros.experiments import results_header, role, split, windows
+from gcn_match_ros.plots import plot_history, plot_pr_curves
+from gcn_match_ros.problem import load_problem
 
-import numpy as np  # noqa: E402
-
-from gcn_match_ros.data import synthetic  # noqa: E402
-from gcn_match_ros.evaluation import evaluate  # noqa: E402
-from gcn_match_ros.plots import plot_pr_curves  # noqa: E402
-from gcn_match_ros.plots import plot_history  # noqa: E402
-from gcn_match_ros.problem import load_problem  # noqa: E402
-from real_eval import role, windows  # noqa: E402
-from train_default import split  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 RUNS = {
     "full": ["--epipolar-weight", "10", "--edge-weight", "1"],
@@ -72,7 +66,7 @@ def train_all(runs_dir: Path, data: Path, steps: int, jobs: int) -> None:
     while todo or running:
         while todo and len(running) < jobs:
             name = todo.pop(0)
-            cmd = [sys.executable, str(ROOT / "benchmarks" / "train_default.py"), "--data", str(data),
+            cmd = [sys.executable, str(REPO / "benchmarks" / "train_default.py"), "--data", str(data),
                    "--steps", str(steps), "--out", str(runs_dir / name)] + RECIPE + RUNS[name]
             log = open(runs_dir / f"{name}.log", "w")
             print("training", name, flush=True)
@@ -95,7 +89,7 @@ def main(argv=None):
     ap.add_argument("--runs", default="/tmp/real_gcn/ablation_synth", help="run folders (reused when complete)")
     ap.add_argument("--data", default="/tmp/real_gcn/sift",
                     help="SIFT problems of all scenes (as made by benchmarks/real_eval.py)")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "geometric_loss_ablation.md"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "geometric_loss_ablation.md"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     runs_dir = Path(args.runs)
@@ -135,20 +129,18 @@ def main(argv=None):
                           labels=list(RUNS), title="SIFT training: with and without the geometric losses")
     pr = out.with_name("geometric_loss_pr.png")
     plot_pr_curves(report, pr)
-    cmd = "benchmarks/geometric_loss_ablation.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    lines = ["# With and without the geometric losses (SIFT)\n",
-             f"Command: `.venv/bin/python {cmd.strip()}`  ",
-             f"Machine: nproc={os.cpu_count()}, torch threads 1 per run, {platform.python_version()}; training "
-             "time per run (its history; runs trained two at a time): "
-             + ", ".join(f"{n} {t:.0f} s" for n, t in train_seconds.items()) + "  ",
-             f"Each run: benchmarks/train_default.py --steps {args.steps} {' '.join(RECIPE)} (seed 0, same data "
-             "and split) with the flags below. Threshold: the best of 0.1/0.2/0.3/0.5/0.7 on validation F1. Validation: 8 fountain/entry "
-             "windows (images >= 6); held-out: 25 SIFT windows (all Oxford + castle-P19); synthetic: 12 generated "
-             "scenes (rome16k / partial, 3-4 views, unseen seeds). Losses: the "
-             "validation losses at the last step (epipolar logged for every run, trained on only where "
-             "its weight is > 0).\n",
-             "| run | flags | threshold | val F1 | held-out F1 | held-out AP | synthetic F1 | val recon | val epipolar |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = results_header("With and without the geometric losses (SIFT)", __file__, argv,
+                           torch_threads="1 per run") + [
+        f"Training time per run (its history; runs trained {args.jobs} at a time): "
+        + ", ".join(f"{n} {t:.0f} s" for n, t in train_seconds.items()) + "  ",
+        f"Each run: benchmarks/train_default.py --steps {args.steps} {' '.join(RECIPE)} (seed 0, same data "
+        "and split) with the flags below. Threshold: the best of 0.1/0.2/0.3/0.5/0.7 on validation F1. Validation: 8 fountain/entry "
+        "windows (images >= 6); held-out: 25 SIFT windows (all Oxford + castle-P19); synthetic: 12 generated "
+        "scenes (rome16k / partial, 3-4 views, unseen seeds). Losses: the "
+        "validation losses at the last step (epipolar logged for every run, trained on only where "
+        "its weight is > 0).\n",
+        "| run | flags | threshold | val F1 | held-out F1 | held-out AP | synthetic F1 | val recon | val epipolar |",
+        "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r[0]} | `{r[1]}` | {r[2]} | {r[3]:.3f} | {r[4]:.3f} | {r[5]:.3f} | {r[6]:.3f} | {r[7]:.4f} "
                      f"| {r[8]:.4f} |")

@@ -1,4 +1,4 @@
-"""How many pose-scene ground-truth pairs are chance confirmations (datasets.label_poses).
+"""How many pose-scene ground-truth pairs are chance confirmations (data.labels.label_poses).
 
 For each Strecha window and detector, the pairs labelled true between the window's first two
 views are counted twice: with the real window, and with every other view's keypoints replaced
@@ -9,62 +9,33 @@ Also printed: the labelled true pairs of the whole window (what the benchmark sc
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gcn_match_ros.data.labels import label_poses
+from gcn_match_ros.data.scenes import read_gray
+from gcn_match_ros.detect import extract_features
+from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header
+from gcn_match_ros.metrics import count_pairs
 
-from gcn_match_ros.data.labels import label_poses  # noqa: E402
-from gcn_match_ros.data.scenes import load_scene, read_gray as _read_gray  # noqa: E402
-from gcn_match_ros.detect import extract_features  # noqa: E402
-from gcn_match_ros.metrics import count_pairs  # noqa: E402
-
+REPO = Path(__file__).resolve().parents[1]
 SCENES = ("strecha/fountain-P11", "strecha/entry-P10", "strecha/castle-P19")
-WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
-
-
-def first_pair_tracks(gt: np.ndarray, n0: int, n1: int) -> int:
-    """Pairs labelled true between view 0 (first n0 entries) and view 1 (next n1)."""
-    a, b = gt[:n0], gt[n0:n0 + n1]
-    return len(np.intersect1d(a[a >= 0], b[b >= 0]))
-
-
-def pose_windows(root: Path, scenes, windows, detector: str, features: int):
-    """(scene id, Scene, window, views) for every window that fits each scene; views: per
-    window view its Features and grey image, each image read and extracted once."""
-    for name in scenes:
-        scene = load_scene(root, name)
-        cache = {}
-        for win in windows:
-            if max(win) >= scene.n_views:
-                continue
-            for v in win:
-                if v not in cache:
-                    image = _read_gray(scene.image_paths[v])
-                    cache[v] = (extract_features(image, detector, features), image)
-            yield name, scene, list(win), [cache[v] for v in win]
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--features", type=int, default=500, help="keypoints per view (the benchmark's 500)")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "label_chance.md"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "label_chance.md"))
     args = ap.parse_args(argv)
     root = Path(args.data_root)
-    unrelated = _read_gray(root / "oxford" / "graf" / "img1.png")
-    cmd = "benchmarks/label_chance.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    lines = ["# Chance confirmations in pose-scene labels\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
-             f"Machine: nproc={os.cpu_count()}, {platform.python_version()}  ",
-             f"{args.features} keypoints per view; label_poses at its defaults (0.5 px).\n",
-             "| detector | scene | window | true pairs views 0-1 | of which chance (estimate) | "
-             "true pairs, whole window |", "|---|---|---|---|---|---|"]
+    unrelated = read_gray(root / "oxford" / "graf" / "img1.png")
+    lines = results_header("Chance confirmations in pose-scene labels", __file__, argv) + [
+        f"{args.features} keypoints per view; label_poses at its defaults (0.5 px).\n",
+        "| detector | scene | window | true pairs views 0-1 | of which chance (estimate) | "
+        "true pairs, whole window |", "|---|---|---|---|---|---|"]
     totals = {}
     t0 = time.time()
     for det in ("sift", "orb"):

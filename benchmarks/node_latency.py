@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gcn_match_ros.experiments import describe_machine, results_header
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 GOAL = (4, 500, 0.050)  # cameras, keypoints per view, p95 seconds (with no drops at 10 Hz)
 
@@ -70,20 +71,11 @@ def _default_solver() -> str:
     return "nn"
 
 
-def _machine() -> str:
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+def _machine_extra() -> list:
+    """What the shared machine line lacks here: the system and the load average now."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    import torch
-    return (f"{os.cpu_count()} CPUs (nproc {len(os.sched_getaffinity(0))}), {model}; {platform.system()} "
-            f"{platform.release()}; Python {platform.python_version()}, torch {torch.__version__} "
-            f"({torch.get_num_threads()} threads); load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    return [f"{platform.system()} {platform.release()}",
+            f"load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"]
 
 
 def _frames(n_cams: int, n_kp: int, seed: int = 0):
@@ -243,8 +235,10 @@ def main(argv=None) -> int:
     shm = ("Fast DDS profile " + env[FASTDDS_PROFILE_ENV]) if env.get(FASTDDS_PROFILE_ENV) else \
         "Fast DDS defaults (512 KiB shared-memory segment)"
     os.environ.pop("ROS_LOCALHOST_ONLY", None)
-    machine = _machine()
-    print(f"machine: {machine}", flush=True)
+    import torch
+
+    extra = _machine_extra()
+    print(f"machine: {describe_machine(torch.get_num_threads(), extra)}", flush=True)
     note = "" if args.solver or solver == "gcn" else " (gcn model not found: fell back to nn)"
     print(f"solver: {solver}{note}; {args.rate:g} Hz, {args.duration:g} s measured per configuration, "
           f"input_qos {args.input_qos}; {shm}", flush=True)
@@ -276,12 +270,10 @@ def main(argv=None) -> int:
         verdict = (f"Goal (p95 < {1e3 * GOAL[2]:.0f} ms at {GOAL[0]} cameras x {GOAL[1]} keypoints, no drops at "
                    f"{args.rate:g} Hz): {'MET' if ok else 'NOT MET'} — p95 {1e3 * g['p95']:.1f} ms, "
                    f"{g['missing']} windows missing, node drops {_fmt_drops(g['windows_dropped'])}.")
-    cmd = "python benchmarks/node_latency.py " + " ".join(sys.argv[1:] if argv is None else argv)
-    doc = f"""# Matcher node: end-to-end latency and throughput
-
-Command: `{cmd.strip()}` (inside `./run.sh`), {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
-
-Machine: {machine}.
+    header = results_header("Matcher node: end-to-end latency and throughput", __file__, argv,
+                            torch_threads=torch.get_num_threads(), machine_extra=extra)
+    doc = "\n".join(header) + f"""
+Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
 
 Solver `{solver}`{note}; every camera publishes one Keypoints frame per capture at {args.rate:g} Hz
 (all stamped with the capture time; synthetic SIFT-like 128-D descriptors), {args.duration:g} s measured after

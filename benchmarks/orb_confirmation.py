@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import os
-import platform
 import subprocess
 import sys
 import time
@@ -29,17 +27,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+from gcn_match_ros.data.convert import convert
+from gcn_match_ros.data.homography_sequence import SequenceConfig, homography_sequence, source_image, write_sequence
+from gcn_match_ros.evaluation import evaluate, format_table
+from gcn_match_ros.experiments import lead_lines, results_header
+from gcn_match_ros.metrics import count_pairs
+from gcn_match_ros.problem import load_problem
 
-from gcn_match_ros.data.convert import convert  # noqa: E402
-from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
-from gcn_match_ros.data.homography_sequence import (SequenceConfig, homography_sequence, source_image,  # noqa: E402
-                                               write_sequence)
-from gcn_match_ros.metrics import count_pairs  # noqa: E402
-from gcn_match_ros.problem import load_problem  # noqa: E402
-from real_eval import cpu_name, lead_lines  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 WHEEL = "scikit_image-0.25.2-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl"
 WHEEL_SHA256 = "24cc986e1f4187a12aa319f777b36008764e856e5013666a4a83f8df083c2641"
@@ -97,22 +92,20 @@ def main(argv=None):
     ap.add_argument("--data", default="/tmp/real_gcn/unseen")
     ap.add_argument("--cache", default="/tmp/real_gcn/unseen/wheel")
     ap.add_argument("--detectors", default="orb,sift")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "orb_confirmation_part_b.md"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "orb_confirmation_part_b.md"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     data = Path(args.data)
     scenes = make_sequences(fetch_wheel(Path(args.cache)), data)
     pictures = Path(args.out).with_name("orb_confirmation_part_b.jpg")  # the same views every run
     montage(data, scenes, pictures)
-    cmd = "benchmarks/orb_confirmation.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    out = ["# ORB confirmation, part B: homography sequences from unseen photographs\n",
-           f"Command: `.venv/bin/python {cmd.strip()}`  ",
-           f"Machine: nproc={os.cpu_count()}, CPU: {cpu_name()}, torch threads 1, {platform.python_version()}  ",
-           "Protocol: benchmarks/results/orb_confirmation_protocol.md (fixed before this run). Scenes: "
-           f"{len(scenes)} sequences of 6 views from the scikit-image 0.25.2 photographs; 500 keypoints; "
-           "windows of 3, 4, 6 consecutive views; labels by exact homography (true < 3 px, false > 10 px). "
-           "Methods with default settings; gcn = the shipped model of the descriptor kind at its stored "
-           f"threshold. The sequences, a row each: {pictures.name}.\n"]
+    out = results_header("ORB confirmation, part B: homography sequences from unseen photographs", __file__, argv,
+                         torch_threads=1) + [
+        "Protocol: benchmarks/results/orb_confirmation_protocol.md (fixed before this run). Scenes: "
+        f"{len(scenes)} sequences of 6 views from the scikit-image 0.25.2 photographs; 500 keypoints; "
+        "windows of 3, 4, 6 consecutive views; labels by exact homography (true < 3 px, false > 10 px). "
+        "Methods with default settings; gcn = the shipped model of the descriptor kind at its stored "
+        f"threshold. The sequences, a row each: {pictures.name}.\n"]
     t0 = time.time()
     for det in args.detectors.split(","):
         folder = data / det

@@ -1,5 +1,5 @@
-"""How far photometric pose-scene labels (datasets.label_photometric) can be trusted, against
-the geometric ones (datasets.label_poses) and a chance test.
+"""How far photometric pose-scene labels (data.labels.label_photometric) can be trusted, against
+the geometric ones (data.labels.label_poses) and a chance test.
 
 For Strecha windows and both detectors:
 - coverage: keypoints labelled (gt != -2) and true pairs under each labeller;
@@ -16,42 +16,33 @@ For Strecha windows and both detectors:
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gcn_match_ros.data.labels import label_photometric, label_poses, window_depth_range
+from gcn_match_ros.data.scenes import read_gray
+from gcn_match_ros.detect import extract_features
+from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header
+from gcn_match_ros.metrics import count_pairs
 
-from gcn_match_ros.data.labels import label_photometric, label_poses  # noqa: E402
-from gcn_match_ros.data.labels import window_depth_range as _window_depth_range  # noqa: E402
-from gcn_match_ros.data.scenes import read_gray as _read_gray  # noqa: E402
-from gcn_match_ros.detect import extract_features  # noqa: E402
-from gcn_match_ros.metrics import count_pairs  # noqa: E402
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from label_chance import WINDOWS, first_pair_tracks, pose_windows  # noqa: E402
-
+REPO = Path(__file__).resolve().parents[1]
 SCENES = ("strecha/castle-P19", "strecha/fountain-P11", "strecha/entry-P10")
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--features", type=int, default=500)
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "photometric_labels_check.md"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "photometric_labels_check.md"))
     args = ap.parse_args(argv)
     root = Path(args.data_root)
-    fake_img = _read_gray(root / "oxford" / "graf" / "img1.png")
-    cmd = "benchmarks/photometric_labels_check.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    lines = ["# Photometric pose-scene labels against geometric ones\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
-             f"Machine: nproc={os.cpu_count()}, {platform.python_version()}; {args.features} keypoints per view.\n",
-             "| detector | scene | window | labelled kps geo / photo | true pairs geo / photo | geo-true pairs: "
-             "photo true / false / unlabelled | chance pairs 0-1 (photo) |", "|---|---|---|---|---|---|---|"]
+    fake_img = read_gray(root / "oxford" / "graf" / "img1.png")
+    lines = results_header("Photometric pose-scene labels against geometric ones", __file__, argv) + [
+        f"{args.features} keypoints per view.\n",
+        "| detector | scene | window | labelled kps geo / photo | true pairs geo / photo | geo-true pairs: "
+        "photo true / false / unlabelled | chance pairs 0-1 (photo) |", "|---|---|---|---|---|---|---|"]
     hamming = {"agree": [], "contradict": []}
     totals = {}
     t0 = time.time()
@@ -64,7 +55,7 @@ def main(argv=None):
             poses = dict(K=scene.K[win], R=scene.R[win], t=scene.t[win])
             view = np.repeat(np.arange(len(win)), [len(k) for k in kps])
             geo = label_poses(kps, **poses)
-            z_range = _window_depth_range(kps, track=geo, **poses)
+            z_range = window_depth_range(kps, track=geo, **poses)
             photo = label_photometric(kps, imgs, image_sizes=scene.image_sizes[win], z_range=z_range, **poses)
             # geometric true pairs, judged by the photometric labels
             gt_true = [(i, j) for tr in np.unique(geo[geo >= 0]) for i in np.flatnonzero(geo == tr)

@@ -1,6 +1,6 @@
 """All solvers side by side on real scenes (Oxford homography scenes, Strecha pose scenes).
 
-Problems are made with datasets.convert (SIFT / ORB, 500 features or --max-features, windows of 3, 4 and 6
+Problems are made with data.convert (SIFT / ORB, 500 features or --max-features, windows of 3, 4 and 6
 consecutive views) into --data (default /tmp/real_gcn) unless already there. Every method
 runs with its default settings on the same problems in one run (evaluation.evaluate:
 one untimed warm-up, median seconds). Which scenes the shipped model was trained on is
@@ -14,27 +14,18 @@ images >= 6 validation (gt labels used there for model selection only).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gcn_match_ros import solvers
+from gcn_match_ros.data.convert import POSE_LABELS, convert
+from gcn_match_ros.evaluation import evaluate, format_table
+from gcn_match_ros.experiments import DATA_ROOT, lead_lines, results_header, role, windows
+from gcn_match_ros.problem import load_problem
 
-from gcn_match_ros.data.convert import convert  # noqa: E402
-from gcn_match_ros.evaluation import evaluate, format_table  # noqa: E402
-from gcn_match_ros.metrics import count_pairs, paired_bootstrap  # noqa: E402
-from gcn_match_ros.problem import load_problem  # noqa: E402
-from gcn_match_ros.solvers import available_solvers  # noqa: E402
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from train_default import SPLIT_AT, images_of  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 OXFORD = ["graf", "boat", "wall", "bikes"]
 STRECHA = ["fountain-P11", "entry-P10", "castle-P19"]
@@ -46,57 +37,32 @@ EXTRA = ["nn-ransac:guided=true"]
 SLOW = {"matchals", "pgdds"}
 
 
-def role(name: str) -> str:
-    if name.startswith("oxford") or "castle" in name:
-        return "test"
-    ims = images_of(name)
-    return "train" if max(ims) < SPLIT_AT else ("val" if min(ims) >= SPLIT_AT else "train/val overlap")
-
-
-def windows(names, quick):
-    """Subsample: Oxford 123, 234, 1234, 123456 (the dev windows); Strecha one window per size
-    starting at images 0 and 6 (castle also 12); --quick: one 3-view window per scene."""
-    keep = []
-    for n in names:
-        ims = images_of(n)
-        if n.startswith("oxford"):
-            ok = n.rsplit("_", 1)[1] in (("123",) if quick else ("123", "234", "1234", "123456"))
-        else:
-            starts = (0,) if quick else ((0, 6, 12) if "castle" in n else (0, 6))
-            ok = ims[0] in starts and (len(ims) == 3 or not quick)
-        if ok:
-            keep.append(n)
-    return keep
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--data", default="/tmp/real_gcn")
-    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "real_eval.md"))
+    ap.add_argument("--data-root", default=str(DATA_ROOT))
+    ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real_eval.md"))
     ap.add_argument("--detectors", default="", help="default sift,orb (--quick: sift)")
     ap.add_argument("--methods", default="", help="comma-separated; default: all solvers + " + ",".join(EXTRA))
     ap.add_argument("--all-windows", action="store_true",
-                    help="every window of every scene, not the fixed subsample of windows()")
+                    help="every window of every scene, not the fixed subsample of experiments.windows()")
     ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")
     ap.add_argument("--max-features", type=int, default=500,
                     help="keypoints per image; problems other than 500 are made into <data>/<detector>_<N>")
-    ap.add_argument("--pose-labels", choices=("geometric", "photometric"), default="geometric",
-                    help="ground truth of the Strecha pose scenes (datasets.make_problem); photometric "
+    ap.add_argument("--pose-labels", choices=POSE_LABELS, default="geometric",
+                    help="ground truth of the Strecha pose scenes (data.convert.make_problem); photometric "
                          "problems are made into <problem folder>_photometric")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    methods = args.methods.split(",") if args.methods else available_solvers() + EXTRA
+    methods = args.methods.split(",") if args.methods else solvers.available_solvers() + EXTRA
     scenes = [f"oxford/{s}" for s in OXFORD] + [f"strecha/{s}" for s in STRECHA]
-    cmd = "benchmarks/real_eval.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    out = [f"# Real-scene evaluation\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
-           f"Machine: nproc={os.cpu_count()}, CPU: {cpu_name()}, torch threads 1, {platform.python_version()}  ",
-           "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",
-           f"Keypoints: {args.max_features} per image. "
-           f"Pose-scene labels: {args.pose_labels} (datasets.make_problem).  ",
-           "Held out of training: ALL Oxford scenes and Strecha castle-P19 (`test`). fountain-P11 / entry-P10 "
-           "windows with images < 6 were training data, images >= 6 validation.\n"]
+    out = results_header("Real-scene evaluation", __file__, argv, torch_threads=1) + [
+        "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",
+        f"Keypoints: {args.max_features} per image. "
+        f"Pose-scene labels: {args.pose_labels} (data.convert.make_problem).  ",
+        "Held out of training: ALL Oxford scenes and Strecha castle-P19 (`test`). fountain-P11 / entry-P10 "
+        "windows with images < 6 were training data, images >= 6 validation.\n"]
     t0 = time.time()
     for det in (args.detectors or ("sift" if args.quick else "sift,orb")).split(","):
         folder = Path(args.data) / (det if args.max_features == 500 else f"{det}_{args.max_features}")
@@ -157,44 +123,6 @@ def main(argv=None):
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(out) + "\n")
     print("wrote", args.out)
-
-
-def lead_lines(rep, problems, subsets):
-    """Lines: the first gcn method's F1 lead over the best non-gcn method that solved every
-    problem (by mean F1 over all of them), with a 95% bootstrap interval over windows, for all
-    and each subset; and how many true pairs the labels hold in each subset."""
-    names = [p.name for p in problems]
-    full = {spec: e for spec, e in rep["methods"].items()
-            if not e.get("reference") and all(n in e["per_problem"] for n in names)}
-    gcn = [spec for spec in full if spec.startswith("gcn")]
-    if not gcn:
-        return []
-    f1 = {spec: np.array([e["per_problem"][n]["F1"] for n in names]) for spec, e in full.items()}
-    rivals = [spec for spec in full if not spec.startswith("gcn")]
-    if not rivals:
-        return []
-    rival = max(rivals, key=lambda spec: f1[spec].mean())
-    true_pairs = {p.name: count_pairs(p.gt_track, p.view_index)[1] for p in problems}
-    lines = [f"\nF1 lead of {full[gcn[0]]['describe']} over the best other method, {full[rival]['describe']} "
-             "(mean over windows; 95% bootstrap interval over windows):\n"]
-    for label, ns in [("all", names)] + list(subsets.items()):
-        idx = [names.index(n) for n in ns]
-        if not idx:
-            continue
-        mean, lo, hi = paired_bootstrap(f1[gcn[0]][idx], f1[rival][idx])
-        lines.append(f"- {label}: {mean:+.3f} [{lo:+.3f}, {hi:+.3f}], {len(idx)} windows, "
-                     f"{sum(true_pairs[n] for n in ns)} labelled true pairs")
-    return lines
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":

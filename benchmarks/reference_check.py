@@ -47,14 +47,12 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
+from gcn_match_ros import solvers  # noqa: E402
 from gcn_match_ros.metrics import mean_scores, score_result  # noqa: E402
 from gcn_match_ros.problem import load_problem  # noqa: E402
 from gcn_match_ros.rounding import is_cycle_consistent  # noqa: E402
-from gcn_match_ros import solvers  # noqa: E402
 
+REPO = Path(__file__).resolve().parents[1]
 REFERENCE = REPO.parent / "shared" / "reference" / "oxford-dev"
 
 #: method -> [(our solver spec, reference row or None)]

@@ -1,11 +1,11 @@
 """F1 of a gcn model against its rounding threshold, on the two validation sets it can be chosen on.
 
-1. The real validation windows of train_default.py (fountain-P11 / entry-P10, images >= 6).
-   Their pose-scene labels confirm few keypoints (datasets.py docstring), and a predicted pair
+1. The real validation windows of train_default.py (experiments.split: fountain-P11 / entry-P10,
+   images >= 6). Their pose-scene labels confirm few keypoints (data/labels.py docstring), and a predicted pair
    counts only when both keypoints are labelled, so the table also gives the share of the
    predicted pairs that is scored at all: where it is small, precision goes unmeasured and F1
    favours low thresholds.
-2. Generated validation scenes (synthetic.py; rome16k and partial, 3 and 4 views, seeds
+2. Generated validation scenes (data/synthetic.py; rome16k and partial, 3 and 4 views, seeds
    training never uses) with descriptors of the model's kind: every keypoint is labelled, so
    false matches always count.
 
@@ -15,28 +15,21 @@ chose it for each shipped model.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gcn_match_ros import solvers
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.evaluation import evaluate
+from gcn_match_ros.experiments import DATA_ROOT, SYNTHETIC_DESCRIPTORS, problem_files, results_header, split
+from gcn_match_ros.learn.sources import SYNTH_VAL_SEED
+from gcn_match_ros.problem import load_problem
+from gcn_match_ros.rounding import tracks_to_pairs
 
-from gcn_match_ros.data import synthetic  # noqa: E402
-from gcn_match_ros.evaluation import evaluate  # noqa: E402
-from gcn_match_ros.problem import load_problem  # noqa: E402
-from gcn_match_ros.rounding import tracks_to_pairs  # noqa: E402
-from gcn_match_ros import solvers  # noqa: E402
-from gcn_match_ros.learn.sources import SYNTH_VAL_SEED as _SYNTH_VAL_SEED  # noqa: E402
-
-sys.path.insert(0, str(ROOT / "benchmarks"))
-from train_default import SYNTHETIC_DESCRIPTORS, problem_files, split  # noqa: E402
-
+REPO = Path(__file__).resolve().parents[1]
 THRESHOLDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
 BASELINE = "nn-ransac:guided=True"
 
@@ -46,7 +39,7 @@ def generated_validation(descriptor_kind: str, count: int):
     out = []
     for i in range(count):
         config = synthetic.preset(("rome16k", "partial")[i % 2], 3 + (i // 2) % 2, descriptor_kind)
-        problem = synthetic.random_scene_problem(config, np.random.default_rng([_SYNTH_VAL_SEED, i]))
+        problem = synthetic.random_scene_problem(config, np.random.default_rng([SYNTH_VAL_SEED, i]))
         problem.name = f"generated-{i:03d}"
         out.append(problem)
     return out
@@ -69,7 +62,7 @@ def main(argv=None):
     ap.add_argument("--detector", choices=tuple(SYNTHETIC_DESCRIPTORS), default="orb")
     ap.add_argument("--checkpoint", default="", help="model to sweep; default: the shipped one of the detector")
     ap.add_argument("--data", default="", help="problem folder (made if empty); default /tmp/real_gcn/train_<detector>")
-    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--generated", type=int, default=60, help="generated validation scenes")
     ap.add_argument("--out", default="", help="default benchmarks/results/threshold_sweep_<detector>.md")
     args = ap.parse_args(argv)
@@ -79,14 +72,12 @@ def main(argv=None):
     pinned = f",checkpoint={args.checkpoint}" if args.checkpoint else ""
     specs = [f"gcn:threshold={t}{pinned}" for t in THRESHOLDS]
     t0 = time.time()
-    cmd = "benchmarks/threshold_sweep.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    lines = [f"# Rounding threshold sweep ({args.detector})\n", f"Command: `.venv/bin/python {cmd.strip()}`  ",
-             f"Machine: nproc={os.cpu_count()}, {platform.python_version()}, torch threads 1  ",
-             f"Model: {args.checkpoint or 'shipped'}; real validation: {len(real)} windows "
-             f"({', '.join(p.name for p in real)}); generated: {len(generated)} scenes "
-             f"({SYNTHETIC_DESCRIPTORS[args.detector]} descriptors).\n",
-             "| threshold | real val F1 | real val P | scored share of predicted pairs | generated F1 | "
-             "generated P | generated R |", "|---|---|---|---|---|---|---|"]
+    lines = results_header(f"Rounding threshold sweep ({args.detector})", __file__, argv, torch_threads=1) + [
+        f"Model: {args.checkpoint or 'shipped'}; real validation: {len(real)} windows "
+        f"({', '.join(p.name for p in real)}); generated: {len(generated)} scenes "
+        f"({SYNTHETIC_DESCRIPTORS[args.detector]} descriptors).\n",
+        "| threshold | real val F1 | real val P | scored share of predicted pairs | generated F1 | "
+        "generated P | generated R |", "|---|---|---|---|---|---|---|"]
     rep_real = evaluate(real, specs + [BASELINE], progress=False, with_reference_rows=False)["methods"]
     rep_gen = evaluate(generated, specs + [BASELINE], progress=False, with_reference_rows=False)["methods"]
     for t, spec in zip(THRESHOLDS, specs):
@@ -100,7 +91,7 @@ def main(argv=None):
         best = max(zip(THRESHOLDS, specs), key=lambda ts: (rep[ts[1]]["mean"]["F1"], ts[0]))[0]
         lines.append(f"\nBest threshold on {label}: {best}")
     lines.append(f"\nWall time {time.time() - t0:.0f} s.")
-    out = Path(args.out or ROOT / "benchmarks" / "results" / f"threshold_sweep_{args.detector}.md")
+    out = Path(args.out or REPO / "benchmarks" / "results" / f"threshold_sweep_{args.detector}.md")
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

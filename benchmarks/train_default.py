@@ -1,92 +1,51 @@
 """Train the shipped models gcn_match_ros/models/default.pt (SIFT) and orb.pt (ORB); the exact
 commands are in models/README.md.
 
-Data (all made here with datasets.convert, SIFT or ORB 500, windows of 3, 4 and 6 consecutive views):
+Data (all made here with data.convert, SIFT or ORB 500, windows of 3, 4 and 6 consecutive views;
+the split is gcn_match_ros.experiments: TRAIN_SCENES, SPLIT_AT, split):
 - train: Strecha fountain-P11 and entry-P10 windows whose images are all < 6, Middlebury temple;
 - validation: fountain-P11 / entry-P10 windows whose images are all >= 6 (the trainer's
   validation loss; their gt labels are used only to compare checkpoints / thresholds by F1);
 - never touched: Strecha castle-P19 and all Oxford scenes (held-out test);
 - optionally (--synthetic) generated scenes mixed 1:1 into the training stream, with SIFT-like
   or ORB-like binary descriptors to match --detector.
-Loss: the project's trainer (train.train) with the paper's L1 reconstruction + epipolar loss on
-the embeddings and the edge head's label-free loss (TrainConfig.edge_weight; edge_head.py).
+Loss: the project's trainer (learn.train.train) with the paper's L1 reconstruction + epipolar loss
+on the embeddings and the edge head's label-free loss (TrainConfig.edge_weight; edges/head.py).
 """
 from __future__ import annotations
 
 import argparse
 import functools
-import re
-import shutil
-import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from gcn_match_ros.data.convert import convert  # noqa: E402
-from gcn_match_ros.edges.candidates import EDGE_FEATURES  # noqa: E402
-from gcn_match_ros.node_features import FeatureConfig, feature_dim  # noqa: E402
-from gcn_match_ros.graph import GraphConfig  # noqa: E402
-from gcn_match_ros.learn.model import GCNConfig  # noqa: E402
-from gcn_match_ros.solvers.gcn import SHIPPED_MODELS  # noqa: E402
-from gcn_match_ros.data import synthetic  # noqa: E402
-from gcn_match_ros.learn.config import TrainConfig  # noqa: E402
-from gcn_match_ros.learn.sources import InterleavedSource, ProblemFileSource, SyntheticSource  # noqa: E402
-from gcn_match_ros.learn.train import train  # noqa: E402
-
-TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
-# descriptor kind (dimension, binary) of each detector's problems: the SHIPPED_MODELS key
-DETECTOR_KINDS = {"sift": (128, False), "orb": (256, True)}  # ORB: 32 bytes unpacked to 256 bits
-# the generated scenes' descriptors standing in for each detector's (synthetic.SceneConfig)
-SYNTHETIC_DESCRIPTORS = {"sift": "sift", "orb": "binary"}
-SPLIT_AT = 6  # Strecha windows with every image < SPLIT_AT train, every image >= SPLIT_AT validate
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.detect import DETECTOR_KINDS, DETECTORS
+from gcn_match_ros.edges.candidates import EDGE_FEATURES
+from gcn_match_ros.experiments import DATA_ROOT, SYNTHETIC_DESCRIPTORS, problem_files, split
+from gcn_match_ros.graph import GraphConfig
+from gcn_match_ros.learn.checkpoint import load_checkpoint, save_checkpoint
+from gcn_match_ros.learn.config import TrainConfig
+from gcn_match_ros.learn.model import GCNConfig
+from gcn_match_ros.learn.sources import InterleavedSource, ProblemFileSource, SyntheticSource
+from gcn_match_ros.learn.train import train
+from gcn_match_ros.node_features import FeatureConfig, feature_dim
+from gcn_match_ros.solvers.gcn import SHIPPED_MODELS
 
 
 def synthetic_scene(presets, descriptor_kind, rng):
-    """A generated scene (synthetic.py) of a random preset among ``presets``, 3 or 4 views,
+    """A generated scene (data.synthetic) of a random preset among ``presets``, 3 or 4 views,
     with descriptors of ``descriptor_kind``."""
     name = presets[int(rng.integers(len(presets)))]
     return synthetic.random_scene_problem(synthetic.preset(name, int(rng.integers(3, 5)), descriptor_kind), rng)
 
 
-def images_of(name: str):
-    tail = name.rsplit("_", 1)[1]
-    return [int(x) for x in (tail.split("-") if "-" in tail else list(tail))]
-
-
-def problem_files(data: str, data_root: str, detector: str):
-    """The real problem files of TRAIN_SCENES for ``detector`` in folder ``data`` (default
-    /tmp/real_gcn/train_<detector>), made with datasets.convert if the folder has none."""
-    folder = Path(data or f"/tmp/real_gcn/train_{detector}")
-    if not list(folder.glob("*.npz")):
-        convert(Path(data_root), folder, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(detector,), max_features=500)
-    return sorted(folder.glob("*.npz"))
-
-
-def split(files):
-    train_f, val_f = [], []
-    for f in files:
-        if "castle" in f.name or f.name.startswith("oxford"):
-            continue  # held-out test scenes: never used
-        if f.name.startswith("strecha"):
-            ims = images_of(f.stem)
-            if max(ims) < SPLIT_AT:
-                train_f.append(f)
-            elif min(ims) >= SPLIT_AT:
-                val_f.append(f)
-        else:
-            train_f.append(f)
-    return train_f, val_f
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--detector", choices=("sift", "orb"), default="sift")
+    ap.add_argument("--detector", choices=DETECTORS, default="sift")
     ap.add_argument("--data", default="", help="problem folder (made if empty); default /tmp/real_gcn/train_<detector>")
-    ap.add_argument("--data-root", default=str(ROOT.parent / "shared" / "data"))
+    ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--out", default="/tmp/real_gcn/run")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--batch-size", type=int, default=2)
@@ -127,7 +86,6 @@ def main(argv=None):
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         # the final weights, saved without optimizer state (see models/README.md)
-        from gcn_match_ros.learn.checkpoint import load_checkpoint, save_checkpoint
         model, meta = load_checkpoint(best)
         config = dict(meta["config"], solver={"threshold": args.threshold})
         target = SHIPPED_MODELS[kind]

@@ -24,29 +24,29 @@ import shutil
 import sys
 from itertools import islice
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
-from . import evaluation, plots
+import numpy as np
+
+from . import evaluation, plots, solvers
 from .bags import make as bag_make
 from .bags.io import STORAGES, bag_info
 from .bags.typesys import KEYPOINTS_TYPE
 from .data import synthetic
 from .data.convert import convert
-from .data.scenes import DatasetError
-from .graph import GraphConfig
+from .data.scenes import DATA_ROOT, DatasetError
+from .graph import CorrespondenceGraph, GraphConfig
 from .learn import ddp
 from .learn.checkpoint import load_checkpoint
 from .learn.config import TrainConfig
-from .learn.model import GCNConfig
+from .learn.model import GCN, GCNConfig, embed_problem
 from .learn.sources import DataSource, check_disjoint, data_source
 from .learn.train import train
 from .node_features import FeatureConfig, feature_dim
 from .problem import Problem, load_problem, save_result
-from . import solvers
 
 __all__ = ["main", "build_parser"]
 
-DATA_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -66,6 +66,12 @@ def _expand(patterns: Sequence[str]) -> List[Path]:
             raise _UserError(f"no file matches '{pat}'")
         paths.extend(Path(h) for h in hits)
     return paths
+
+
+def _embed(loaded: Tuple[GCN, Dict[str, Any]], problem: Problem) -> Tuple[np.ndarray, CorrespondenceGraph]:
+    """(embeddings, graph) of ``problem`` by a loaded checkpoint, with the settings it was trained with."""
+    model, meta = loaded
+    return embed_problem(model, problem, meta["graph_config"], meta["feature_config"])
 
 
 def _first_problem(source: DataSource, what: str) -> Problem:
@@ -201,14 +207,13 @@ def _result_plots(out: Path, val_src: DataSource, count: int) -> List[Path]:
     problems = [p for p in islice(val_src(0), count) if p.gt_track is not None]
     if not problems:
         return []
-    model, meta = load_checkpoint(out / "best.pt")
+    loaded = load_checkpoint(out / "best.pt")
+    embedded = [_embed(loaded, p) for p in problems]
     written = []
     try:
-        plots.plot_similarity(model, problems[0], out / "similarity.png", meta["graph_config"],
-                              meta["feature_config"])
+        plots.plot_similarity(problems[0], *embedded[0], out / "similarity.png")
         written.append(out / "similarity.png")
-        plots.plot_similarity_histograms(model, problems, out / "histograms.png", meta["graph_config"],
-                                         meta["feature_config"])
+        plots.plot_similarity_histograms({"GCN": [E for E, _ in embedded]}, problems, out / "histograms.png")
         written.append(out / "histograms.png")
     except ValueError as exc:
         print(f"(no similarity plots: {exc})")
@@ -243,11 +248,10 @@ def _cmd_plot(args) -> int:
             report["methods"][spec]["describe"] = lab
         print(plots.plot_pr_curves(report, args.pr))
     if args.similarity:
-        model, meta = loaded[labels[0]]
-        print(plots.plot_similarity(model, problems[0], args.similarity, meta["graph_config"],
-                                    meta["feature_config"]))
+        print(plots.plot_similarity(problems[0], *_embed(loaded[labels[0]], problems[0]), args.similarity))
     if args.histograms:
-        print(plots.plot_similarity_histograms(loaded, problems, args.histograms))
+        embeddings = {lab: [_embed(m, p)[0] for p in problems] for lab, m in loaded.items()}
+        print(plots.plot_similarity_histograms(embeddings, problems, args.histograms))
     return 0
 
 

@@ -23,7 +23,12 @@ def normalize_descriptors(desc: np.ndarray, normalization: str = "l2") -> np.nda
     root, then unit rows.
 
     Shapes: desc (N, D) -> (N, D) float32 with unit rows (zero rows stay zero).
+
+    Raises:
+        ValueError: an unknown normalization.
     """
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     d = np.asarray(desc, dtype=np.float32)
     if normalization == "rootsift":
         d = np.abs(d)

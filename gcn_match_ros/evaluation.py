@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Dict, List, Sequence, Union
 
 import numpy as np
+from tqdm import tqdm
 
 from .metrics import SCORE_KEYS, mean_scores, pr_curve, reference_rows, score_result, scored_pairs
 from .problem import Problem, load_problem
@@ -32,8 +33,6 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
                                                 "mean": scores, "skipped": {name: reason},
                                                 "pr": {"precision": [...], "recall": [...]}}}}
     """
-    from tqdm import tqdm
-
     loaded = [p if isinstance(p, Problem) else load_problem(p) for p in problems]
     for p in loaded:
         if p.gt_track is None:

@@ -147,7 +147,7 @@ def sampson_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarra
 def epipolar_distances(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """For pairs xa[m] <-> xb[m], the larger of the two point-to-epipolar-line distances (each
     in its own image's pixels), under F with ``x_bᵀ F x_a = 0``: the diagonal of
-    :func:`epipolar_distance_matrix`.
+    :func:`epipolar_distance_matrix` (up to rounding: a row sum, not a matrix product).
 
     Shapes: F (3, 3), xa, xb (M, 2) -> (M,) float64.
     """

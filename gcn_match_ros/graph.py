@@ -23,6 +23,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS
 from .problem import Problem
 from .similarity import DescriptorSimilarity
@@ -31,7 +32,7 @@ __all__ = ["GraphConfig", "GRAPH_PRESETS", "CorrespondenceGraph", "build_graph"]
 
 
 @dataclasses.dataclass(frozen=True)
-class GraphConfig:
+class GraphConfig(JsonConfig):
     """How candidate edges are chosen and weighted.
 
     Attributes:

@@ -15,10 +15,9 @@ descriptor.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Dict
-
 import numpy as np
 
+from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS, normalize_descriptors
 from .geometry import unproject
 from .problem import Problem
@@ -27,7 +26,7 @@ __all__ = ["FeatureConfig", "node_features", "feature_dim", "calibrated_points",
 
 
 @dataclasses.dataclass(frozen=True)
-class FeatureConfig:
+class FeatureConfig(JsonConfig):
     """Which parts of the node features are included.
 
     Attributes:
@@ -46,21 +45,9 @@ class FeatureConfig:
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
-            raise ValueError(f"FeatureConfig.normalization must be 'l2' or 'rootsift', "
+            raise ValueError(f"FeatureConfig.normalization must be one of {NORMALIZATIONS}, "
                              f"got {self.normalization!r}")
 
-    def to_dict(self) -> Dict[str, Any]:
-        """Plain JSON-able dict."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: Dict[str, Any]) -> "FeatureConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"FeatureConfig: unknown keys {sorted(unknown)}")
-        return cls(**d)
 
 
 def feature_dim(descriptor_dim: int, config: FeatureConfig = FeatureConfig()) -> int:

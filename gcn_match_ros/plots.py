@@ -23,9 +23,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .graph import GraphConfig
-from .learn.model import embed_problem
-from .node_features import FeatureConfig
+from .graph import CorrespondenceGraph
 from .problem import Problem
 
 __all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_similarity", "similarity_order",
@@ -186,10 +184,6 @@ def plot_pr_curves(report: Mapping[str, Any], path) -> Path:
 # ---------------------------------------------------------------------------
 # Similarity matrices
 # ---------------------------------------------------------------------------
-def _embed(model, problem: Problem, graph_config: GraphConfig, feature_config: FeatureConfig):
-    return embed_problem(model, problem, graph_config, feature_config)
-
-
 def similarity_order(problem: Problem, max_per_view: int = 60) -> Tuple[np.ndarray, np.ndarray]:
     """Keypoints to show and the view boundaries of the figure.
 
@@ -224,16 +218,18 @@ def similarity_order(problem: Problem, max_per_view: int = 60) -> Tuple[np.ndarr
     return np.concatenate(rows), np.asarray(offsets)
 
 
-def plot_similarity(model, problem: Problem, path, graph_config: GraphConfig = GraphConfig(),
-                    feature_config: FeatureConfig = FeatureConfig(), max_per_view: int = 60,
-                    title: str = "") -> Path:
+def plot_similarity(problem: Problem, embeddings: np.ndarray, graph: CorrespondenceGraph, path,
+                    max_per_view: int = 60, title: str = "") -> Path:
     """Input graph A, output EEᵀ and ground truth XXᵀ of one problem, blockwise by view,
     keypoints ordered by ground-truth track (:func:`similarity_order`; larger problems show
-    a subset). The network runs on the whole problem."""
+    a subset).
+
+    Shapes: embeddings E (N, d) of the whole problem (e.g. :func:`gcn_match_ros.learn.model.embed_problem`),
+    graph its input graph over the N keypoints."""
     rows, offsets = similarity_order(problem, max_per_view)
     if rows.size > 1500:
         raise ValueError(f"{rows.size} keypoints are too many for a similarity figure; lower max_per_view")
-    E, graph = _embed(model, problem, graph_config, feature_config)
+    E = embeddings
     A = graph.adjacency().toarray()[np.ix_(rows, rows)]
     S = E[rows] @ E[rows].T
     g = problem.gt_track[rows]
@@ -286,30 +282,21 @@ def cross_view_similarities(E: np.ndarray, problem: Problem) -> Tuple[np.ndarray
     return cat(same), cat(diff)
 
 
-def plot_similarity_histograms(models, problems: Sequence[Problem], path,
-                               graph_config: GraphConfig = GraphConfig(),
-                               feature_config: FeatureConfig = FeatureConfig(), bins: int = 60,
-                               title: str = "") -> Path:
+def plot_similarity_histograms(embeddings: Mapping[str, Sequence[np.ndarray]], problems: Sequence[Problem], path,
+                               bins: int = 60, title: str = "") -> Path:
     """Histograms of EEᵀ for cross-view pairs of the same point vs different points, pooled
-    over ``problems`` (labelled). ``models``: one model, or label -> model (or
-    label -> (model, meta) from :func:`model.load_checkpoint`, whose graph/feature settings
-    are then used): one panel each, e.g. with and without the epipolar loss."""
-    if not isinstance(models, Mapping):
-        models = {"GCN": models}
-    problems = [p for p in problems if p.gt_track is not None]
+    over ``problems`` (labelled). ``embeddings``: label -> the (N_i, d) embeddings of each
+    problem (e.g. one model's): one panel each, e.g. with and without the epipolar loss."""
+    if any(p.gt_track is None for p in problems):
+        raise ValueError("every problem of the histograms needs ground truth (gt_track)")
     if not problems:
-        raise ValueError("no problem with ground truth (gt_track) for the histograms")
+        raise ValueError("no problem for the histograms")
     plt = _plt()
-    fig, axes = plt.subplots(1, len(models), figsize=(5.2 * len(models), 3.9), squeeze=False)
+    fig, axes = plt.subplots(1, len(embeddings), figsize=(5.2 * len(embeddings), 3.9), squeeze=False)
     edges = np.linspace(-1.0, 1.0, bins + 1)
-    for ax, (label, m) in zip(axes[0], models.items()):
-        gc, fc = graph_config, feature_config
-        if isinstance(m, tuple):
-            m, meta = m
-            gc, fc = meta.get("graph_config", gc), meta.get("feature_config", fc)
+    for ax, (label, per_problem) in zip(axes[0], embeddings.items()):
         same, diff = [], []
-        for p in problems:
-            E, _ = _embed(m, p, gc, fc)
+        for E, p in zip(per_problem, problems):
             s, d = cross_view_similarities(E, p)
             same.append(s)
             diff.append(d)

@@ -34,7 +34,9 @@ def ns_to_seconds(ns: int) -> float:
 
 
 def seconds_to_ns(seconds: float) -> int:
-    """Float seconds -> ns, such that ``ns_to_seconds(seconds_to_ns(s)) == s``.
+    """Float seconds -> ns, such that ``ns_to_seconds(seconds_to_ns(s)) == s`` whenever some
+    integer ns reads back as ``s`` (every float made by :func:`ns_to_seconds` does); else the
+    nearest ns.
 
     Several ns values map to one float; this picks the roundest of them
     (``1700000000.102`` -> ``1700000000102000000``, not ``...101999998``), so stamps made

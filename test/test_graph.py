@@ -1,3 +1,4 @@
+"""The correspondence graph (gcn_match_ros.graph): candidates, symmetry, linear size."""
 import numpy as np
 import pytest
 

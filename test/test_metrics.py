@@ -1,3 +1,4 @@
+"""Tests of gcn_match_ros.metrics: pair counts, precision/recall, average precision, bootstrap."""
 import math
 
 import numpy as np
@@ -5,7 +6,7 @@ import pytest
 
 from gcn_match_ros.metrics import average_precision, count_pairs, paired_bootstrap, reference_rows, score_result
 from gcn_match_ros.problem import Problem, Result
-from gcn_match_ros.rounding import greedy_tracks, is_cycle_consistent, relabel_tracks, tracks_to_pairs
+from gcn_match_ros.rounding import tracks_to_pairs
 
 
 def _problem(gt, views):
@@ -18,6 +19,8 @@ def _problem(gt, views):
 
 # Two views of 3 keypoints + one of 2; gt: points 0,1 seen in all, -1 distractor, -2 unlabelled.
 GT = [0, 1, -1, 1, 0, -2, 0, 1]
+
+
 VIEWS = [0, 0, 0, 1, 1, 1, 2, 2]
 
 
@@ -66,22 +69,6 @@ def test_similarity_and_paper_l1_with_reference_rows():
     perfect = Result(track=gt, pair_rows=r, pair_cols=c, pair_scores=np.ones(r.size))
     s = score_result(p, perfect)
     assert s["L1"] == 0 and s["same_sim"] == 1 and s["diff_sim"] == 0 and s["AP"] == pytest.approx(1)
-
-
-def test_greedy_tracks_never_puts_two_keypoints_of_one_view_together():
-    view = np.array([0, 0, 1, 2])
-    # 0-2 and 1-2 both strong: only the better one may join 2; 2-3 joins.
-    track = greedy_tracks(4, view, np.array([0, 1, 2]), np.array([2, 2, 3]), np.array([0.9, 0.8, 0.7]))
-    assert track[0] == track[2] == track[3] and track[1] == -1
-    assert is_cycle_consistent(track, view)
-    below = greedy_tracks(4, view, np.array([0]), np.array([2]), np.array([0.3]), threshold=0.5)
-    assert np.all(below == -1)
-
-
-def test_relabel_and_pairs():
-    np.testing.assert_array_equal(relabel_tracks([7, 7, 3, -1, 5, 5]), [0, 0, -1, -1, 1, 1])
-    r, c = tracks_to_pairs(np.array([0, 1, 0, 0, -1]))
-    assert sorted(zip(r.tolist(), c.tolist())) == [(0, 2), (0, 3), (2, 3)]
 
 
 def test_paired_bootstrap():

@@ -5,8 +5,8 @@ on a random ROS_DOMAIN_ID and its own node namespace (so even a domain shared wi
 concurrent run never mixes topics); discovery is confined to this machine. Nothing sleeps a
 fixed time: tests spin the executor until a condition holds or a timeout passes.
 
-The matcher tests run with ``GCN_MATCH_TEST_SOLVER`` (default: ``gcn`` when its shipped
-model exists, else ``nn``); the accuracy test runs every available solver of nn / gcn.
+The matcher tests run with ``GCN_MATCH_TEST_SOLVER`` (default: ``gcn``, the shipped model);
+the accuracy test runs nn and gcn (and that solver).
 """
 from __future__ import annotations
 
@@ -35,7 +35,6 @@ from gcn_match_ros.ros.matcher_node import MatcherNode, StartupError
 from gcn_match_ros.ros.parameters import MATCHER_PARAMETERS
 from gcn_match_ros.ros.testing import RosSession, diagnostic_values
 from gcn_match_ros.solvers import SoftMatches, Solver, available_solvers, register
-from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT
 from gcn_match_ros.stamps import seconds_to_ns, stamp_to_ns
 from gcn_match_ros.windowing import Frame, WindowConfig
 
@@ -43,8 +42,7 @@ from conftest import PermutedScene, domain_id
 
 REPO = Path(__file__).resolve().parents[1]
 CAMS = ["cam0", "cam1", "cam2"]
-GCN_MODEL = Path(DEFAULT_CHECKPOINT).is_file()
-TEST_SOLVER = os.environ.get("GCN_MATCH_TEST_SOLVER") or ("gcn" if GCN_MODEL else "nn")
+TEST_SOLVER = os.environ.get("GCN_MATCH_TEST_SOLVER") or "gcn"
 
 
 class MatcherHarness:
@@ -145,12 +143,7 @@ def test_parameters_are_declared_from_one_table(harness_factory):
 # Matching
 # ---------------------------------------------------------------------------------------
 def _solvers_under_test():
-    out = ["nn"]
-    if GCN_MODEL:
-        out.append("gcn")
-    if TEST_SOLVER not in out:
-        out.append(TEST_SOLVER)
-    return out
+    return ["nn", "gcn"] + ([TEST_SOLVER] if TEST_SOLVER not in ("nn", "gcn") else [])
 
 
 @pytest.mark.parametrize("solver", _solvers_under_test())
@@ -286,11 +279,15 @@ class _GateSolver(Solver):
         return SoftMatches.from_graph(graph, values=graph.cosine), None
 
 
-if _GateSolver.name not in available_solvers():
-    register(_GateSolver)
+@pytest.fixture
+def gate_solver():
+    """_GateSolver registered (at test time, so collecting other test files never sees it)."""
+    if _GateSolver.name not in available_solvers():
+        register(_GateSolver)
+    return _GateSolver
 
 
-def test_matcher_worker_drops_superseded_stale_and_survives_solver_errors(harness_factory):
+def test_matcher_worker_drops_superseded_stale_and_survives_solver_errors(harness_factory, gate_solver):
     h = harness_factory(solver="test_gate", max_age=1.0)
     scene = PermutedScene(points=20, dim=32, distractors=0, seed=2)
     gate = _GateSolver
@@ -342,7 +339,6 @@ def test_matcher_rejects_invalid_parameter_changes(harness_factory):
     assert m._assembler.config.sync_tolerance == 0.02
 
 
-@pytest.mark.skipif(not GCN_MODEL, reason="shipped model missing")
 def test_matcher_gcn_takes_orb_and_drops_descriptors_without_a_model(harness_factory):
     """With the shipped models the gcn node takes 128-D real-valued (SIFT) or 256-bit binary
     (ORB) frames, by the type their messages declare; descriptors no model was trained for are

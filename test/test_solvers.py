@@ -1,13 +1,9 @@
-"""Tests of the multi-view matching solvers (gcn_match_ros/solvers/).
-
-pygmtools-style: problems with a known answer (V views, each a random permutation of p scene
-points, the input graph = exactly the true pairs) must be recovered exactly by every registered
-solver, with cycle-consistent tracks; then partial visibility, a few wrong edges, settings
-parsing, input validation and the dense methods' node limit.
-"""
+"""Tests of gcn_match_ros.solvers (every registered method): known answers, settings, input checks, node limits."""
+# pygmtools-style: problems with a known answer (V views, each a random permutation of p scene
+# points, the input graph = exactly the true pairs) must be recovered exactly by every registered
+# solver, with cycle-consistent tracks; then partial visibility, a few wrong edges, settings
+# parsing, input validation and the dense methods' node limit.
 from __future__ import annotations
-
-import itertools
 
 import numpy as np
 import pytest
@@ -16,7 +12,7 @@ import scipy.sparse as sp
 from gcn_match_ros.graph import CorrespondenceGraph
 from gcn_match_ros.metrics import score_result
 from gcn_match_ros.problem import Problem
-from gcn_match_ros.rounding import estimate_universe_size, is_cycle_consistent
+from gcn_match_ros.rounding import is_cycle_consistent
 from gcn_match_ros import solvers
 from gcn_match_ros.solvers import available_solvers
 from gcn_match_ros.solvers.clear import clear
@@ -25,6 +21,9 @@ from gcn_match_ros.solvers.matcheig import matcheig
 from gcn_match_ros.solvers.pgdds import pgdds
 from gcn_match_ros.solvers.quickmatch import quickmatch
 from gcn_match_ros.solvers.spectral import spectral
+
+from conftest import (corrupted_pairs, graph_from_pairs, known_answer_problem as make_problem,
+                      true_pair_list as true_pairs)
 
 SOLVERS = [s for s in available_solvers() if s != "gcn"]
 #: Settings for the exact-recovery tests. PGDDS descends from a random start and can stop at a
@@ -36,62 +35,7 @@ EXACT = {"pgdds": "pgdds:restarts=2,perturbation=0.2"}
 ROBUST = ["spectral", "matcheig", "clear", "matchals"]
 
 
-# -- problems with a known answer --------------------------------------------------------------
-def make_problem(n_views: int, n_points: int, visibility: float = 1.0, seed: int = 0, dim: int = 16) -> Problem:
-    """Each view sees a random subset (all when visibility = 1) of p points in random order.
-
-    Descriptors are the point's descriptor, identical in every view (noiseless); gt_track is the
-    point id, -1 for a point seen by a single view.
-    """
-    rng = np.random.default_rng(seed)
-    base = rng.normal(size=(n_points, dim))
-    seen = rng.random((n_views, n_points)) < visibility
-    seen[rng.integers(n_views, size=n_points), np.arange(n_points)] = True  # every point somewhere
-    ids = [rng.permutation(np.flatnonzero(seen[v])) for v in range(n_views)]
-    gt = np.concatenate(ids)
-    n_seen = seen.sum(axis=0)
-    gt = np.where(n_seen[gt] >= 2, gt, -1)
-    offsets = np.r_[0, np.cumsum([len(i) for i in ids])]
-    return Problem(view_offsets=offsets, keypoints=rng.uniform(0, 100, size=(len(gt), 2)),
-                   descriptors=base[np.concatenate(ids)], gt_track=gt, name=f"perm{n_views}x{n_points}")
-
-
-def true_pairs(problem: Problem):
-    gt, view = problem.gt_track, problem.view_index
-    out = []
-    for g in np.unique(gt[gt >= 0]):
-        idx = np.flatnonzero(gt == g)
-        out += [(int(a), int(b)) for a, b in itertools.combinations(idx, 2) if view[a] != view[b]]
-    return out
-
-
-def graph_from_pairs(problem: Problem, pairs) -> CorrespondenceGraph:
-    """Binary graph with exactly these undirected pairs (stored both ways, sorted)."""
-    pairs = np.asarray(sorted(set((min(a, b), max(a, b)) for a, b in pairs)), np.int64).reshape(-1, 2)
-    rows = np.r_[pairs[:, 0], pairs[:, 1]]
-    cols = np.r_[pairs[:, 1], pairs[:, 0]]
-    order = np.lexsort((cols, rows))
-    rows, cols = rows[order], cols[order]
-    e = rows.size
-    return CorrespondenceGraph(problem.view_offsets.copy(), rows, cols, np.ones(e, np.float32),
-                               np.ones(e, np.float32), np.zeros(e, np.float32), np.zeros(e, np.int64))
-
-
-def corrupted_pairs(problem: Problem, fraction: float, seed: int = 0):
-    """True pairs with ``fraction`` of them removed and as many wrong cross-view pairs added."""
-    rng = np.random.default_rng(seed)
-    pairs = true_pairs(problem)
-    k = max(1, int(round(fraction * len(pairs))))
-    keep = [pairs[i] for i in sorted(rng.choice(len(pairs), len(pairs) - k, replace=False))]
-    gt, view, n = problem.gt_track, problem.view_index, problem.n_keypoints
-    wrong = set()
-    while len(wrong) < k:
-        a, b = (int(x) for x in rng.integers(n, size=2))
-        if view[a] != view[b] and (gt[a] != gt[b] or gt[a] < 0):
-            wrong.add((min(a, b), max(a, b)))
-    return keep + sorted(wrong)
-
-
+# -- solve and score (problems with a known answer: conftest.known_answer_problem) -------------
 def solve_and_score(spec: str, problem: Problem, graph: CorrespondenceGraph):
     result = solvers.create(spec).solve(problem, graph)
     assert is_cycle_consistent(result.track, problem.view_index), f"{spec}: tracks not cycle-consistent"
@@ -137,23 +81,6 @@ def test_robust_to_a_few_wrong_edges(name):
     assert floor["P"] < 1.0 and floor["R"] < 1.0  # the input really is corrupted
     assert sc["F1"] > floor["F1"], (name, sc["F1"], floor["F1"])
     assert sc["P"] == 1.0 and sc["R"] >= 0.95, (name, sc)
-
-
-def test_estimate_universe_size_counts_points():
-    prob = make_problem(4, 25, visibility=0.6, seed=3)
-    adj = graph_from_pairs(prob, true_pairs(prob)).adjacency()
-    n_points = np.unique(prob.gt_track[prob.gt_track >= 0]).size + int(np.sum(prob.gt_track == -1))
-    assert estimate_universe_size(adj, prob.view_sizes) == n_points
-    full = make_problem(3, 12, seed=0)
-    assert estimate_universe_size(graph_from_pairs(full, true_pairs(full)).adjacency(), full.view_sizes) == 12
-    # dropped and wrong edges do not change the number of points
-    for seed in range(3):
-        noisy = make_problem(5, 20, seed=seed)
-        adj = graph_from_pairs(noisy, corrupted_pairs(noisy, 0.05, seed=seed)).adjacency()
-        assert estimate_universe_size(adj, noisy.view_sizes) == 20
-    # bounds: never below the largest view, never above max_rank
-    assert estimate_universe_size(sp.csr_matrix((30, 30)), np.array([10, 10, 10])) == 30
-    assert estimate_universe_size(sp.csr_matrix((30, 30)), np.array([10, 10, 10]), max_rank=12) == 12
 
 
 # -- settings ----------------------------------------------------------------------------------

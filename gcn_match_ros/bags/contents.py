@@ -13,7 +13,7 @@ Topic layout (per camera ``<cam>``, e.g. ``cam0``; all stamps are image stamps)
 - ``/<cam>/pose`` (``geometry_msgs/msg/PoseStamped``): pose of ``<cam>_optical_frame`` in
   ``world`` (only frames with R, t, e.g. scenes with poses).
 - ``/<cam>/gt_labels`` (``gcn_match_msgs/msg/KeypointLabels``): scene-global ground truth
-  per keypoint (bags made from datasets).
+  per keypoint (bags made from dataset scenes).
 
 The messages of one frame share ``header.stamp`` and the bag's log time equals that
 stamp, so the bag's order is stamp order (what a live rig publishes).

@@ -12,6 +12,9 @@ from pathlib import Path
 from typing import Dict, Iterator, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
+from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from .typesys import BagError, ensure_type, typestore
 
@@ -21,8 +24,6 @@ STORAGES = ("mcap", "sqlite3")
 
 
 def _open_writer(path: Path, storage: str, compress: bool):
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
-
     if storage not in STORAGES:
         raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}")
     writer = Writer(path, version=Writer.VERSION_LATEST,
@@ -121,8 +122,6 @@ class BagReader:
     rebuilt from the definitions stored in the bag (falling back to ours)."""
 
     def __init__(self, path) -> None:
-        from rosbags.rosbag2 import Reader
-
         self.path = Path(path)
         if not self.path.exists():
             raise BagError(f"{self.path}: no such bag")
@@ -136,9 +135,6 @@ class BagReader:
     def _store(self):
         """Standard Jazzy types, then the definitions stored in the bag (a bag written with an
         older Keypoints.msg decodes with its own definition), then ours for the rest."""
-        from rosbags.interfaces import MessageDefinitionFormat
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
         store = get_typestore(Stores.ROS2_JAZZY)
         for conn in self.reader.connections:
             if conn.msgdef.format == MessageDefinitionFormat.MSG and conn.msgdef.data:

@@ -3,9 +3,9 @@
 Core module (numpy, rosbags through :mod:`gcn_match_ros.bags`; never rclpy).
 
 :class:`BagSource` reads each bag once (:func:`.contents.read_bag`), feeds its frames in bag
-order to a :class:`windowing.WindowAssembler` exactly as the matcher node does
+order to a :class:`~gcn_match_ros.windowing.WindowAssembler` exactly as the matcher node does
 (:meth:`.contents.BagContents.windows`), and turns every window into a :class:`Problem`
-(:func:`windowing.window_problem`): keypoints, descriptors, scales, orientations, K from
+(:func:`~gcn_match_ros.windowing.window_problem`): keypoints, descriptors, scales, orientations, K from
 ``camera_info``, world->camera R, t from ``/<cam>/pose`` (so the epipolar loss applies
 to posed bags) and ``gt_track`` from ``/<cam>/gt_labels`` (:func:`.contents.window_labels`).
 The windows are then served like :class:`gcn_match_ros.learn.sources.ProblemFileSource` serves files: an
@@ -124,7 +124,7 @@ def check_disjoint_scenes(train: "BagSource", val: "BagSource") -> None:
 
 
 class BagSource:
-    """Cycles over the matching windows of rosbag2 bags (a :class:`train.DataSource`).
+    """Cycles over the matching windows of rosbag2 bags (a :class:`gcn_match_ros.learn.sources.DataSource`).
 
     Problem k of the stream is window ``order(epoch)[pos]`` with ``epoch, pos = divmod(k, n)``
     over the n windows of all bags (bags in the given order, windows in emission order);

@@ -10,6 +10,9 @@ import sys
 from pathlib import Path
 from typing import List, Tuple
 
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.interfaces import Nodetype
+
 __all__ = ["BagError", "MSG_PACKAGE", "KEYPOINTS_TYPE", "LABELS_TYPE", "MATCH_WINDOW_TYPE", "CAMERA_INFO_TYPE",
            "POSE_TYPE", "HEADER_TYPE", "typestore", "ensure_type", "find_msg_file", "normalise_type", "has_header"]
 
@@ -75,8 +78,6 @@ def _split_type(msgtype: str) -> Tuple[str, str, str]:
 def ensure_type(store, msgtype: str) -> str:
     """Register ``msgtype`` (and the types it uses) in ``store`` from installed ``.msg``
     files if it is not known yet; returns the normalised name ``pkg/msg/Name``."""
-    from rosbags.typesys import get_types_from_msg
-
     pkg, kind, name = _split_type(msgtype)
     full = f"{pkg}/{kind}/{name}"
     if full in store.fielddefs:
@@ -92,8 +93,6 @@ def ensure_type(store, msgtype: str) -> str:
 
 def _referenced(nodetype, spec) -> List[str]:
     """Message type names a field definition refers to."""
-    from rosbags.typesys.msg import Nodetype  # type: ignore[attr-defined]
-
     if nodetype == Nodetype.NAME:
         return [spec]
     if nodetype in (Nodetype.ARRAY, Nodetype.SEQUENCE):
@@ -106,8 +105,6 @@ def _referenced(nodetype, spec) -> List[str]:
 def typestore():
     """The rosbags type store for ROS 2 Jazzy with gcn_match_msgs registered (shared,
     cached: do not register conflicting definitions in it)."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
     store = get_typestore(Stores.ROS2_JAZZY)
     types = {}
     for name in OUR_TYPES:

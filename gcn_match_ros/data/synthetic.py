@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Callable, Optional, Tuple, Union
 
 import numpy as np
+from tqdm import tqdm
 
 from ..descriptors import descriptor_kind
 from ..geometry import project
@@ -500,8 +501,6 @@ def write_problems(out_dir, generator: Callable[[np.random.Generator], object], 
     generator from ``SeedSequence(seed).spawn(count)[i]``, so the files are a deterministic
     function of ``seed`` and i. Returns the written paths.
     """
-    from tqdm import tqdm
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     children = np.random.SeedSequence(seed).spawn(count)

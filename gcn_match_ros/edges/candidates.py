@@ -20,13 +20,14 @@ training and at test time alike.
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, List, Optional
+from typing import List, Optional
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 import torch
 
+from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS
 from ..geometry import epipolar_distance_matrix, transfer
 from ..problem import Problem
@@ -43,7 +44,7 @@ RANK_CAP = 10  # descriptor ranks are features up to this value (min(rank, RANK_
 
 
 @dataclasses.dataclass(frozen=True)
-class EdgeConfig:
+class EdgeConfig(JsonConfig):
     """k: descriptor candidates per keypoint and view; geometry: fit H/F per view pair and
     add geometric features; guided: add geometry-guided candidates; guide_px: their
     tolerance; ratio: Lowe ratio of the confident seed pairs; normalization: of the
@@ -59,9 +60,6 @@ class EdgeConfig:
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
-
-    def to_dict(self) -> Dict:
-        return dataclasses.asdict(self)
 
 
 @dataclasses.dataclass

@@ -9,7 +9,6 @@ unpickles code. Writes are atomic (temporary file + rename): a crash never leave
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from typing import Any, Dict, Optional, Tuple
@@ -71,16 +70,6 @@ def save_checkpoint(path, model: GCN, config_dict: Optional[Dict[str, Any]] = No
     atomic_write(path, lambda tmp: torch.save(payload, tmp))
 
 
-def _graph_config_from(d: Optional[Dict[str, Any]]) -> GraphConfig:
-    if not d:
-        return GraphConfig()
-    names = {f.name for f in dataclasses.fields(GraphConfig)}
-    unknown = set(d) - names
-    if unknown:
-        raise ValueError(f"GraphConfig: unknown keys {sorted(unknown)}")
-    return GraphConfig(**d)
-
-
 def load_checkpoint(path, map_location: str = "cpu") -> Tuple[GCN, Dict[str, Any]]:
     """Read a checkpoint written by :func:`save_checkpoint` (``torch.load(weights_only=True)``).
 
@@ -113,7 +102,7 @@ def load_checkpoint(path, map_location: str = "cpu") -> Tuple[GCN, Dict[str, Any
         raise CheckpointError(f"{path}: checkpoint lacks 'config.model' or 'state_dict'")
     try:
         model_config = GCNConfig.from_dict(config["model"])
-        graph_config = _graph_config_from(config.get("graph"))
+        graph_config = GraphConfig.from_dict(config.get("graph") or {})
         feature_config = FeatureConfig.from_dict(config.get("features") or {})
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: invalid configuration ({exc})") from None

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Dict, Optional
+from typing import Optional
 
+from ..configs import JsonConfig
 from ..graph import GraphConfig
 from ..node_features import FeatureConfig
 
@@ -11,7 +12,7 @@ __all__ = ["TrainConfig"]
 
 
 @dataclasses.dataclass
-class TrainConfig:
+class TrainConfig(JsonConfig):
     """Optimisation, loss and bookkeeping settings of :func:`train`.
 
     Attributes:
@@ -47,7 +48,7 @@ class TrainConfig:
     recon_kind: str = "l1"
     recon_weight: float = 1.0
     epipolar_weight: float = 10.0
-    edge_weight: float = 0.0  # edge-head loss (edge_head.edge_training_loss), posed problems only
+    edge_weight: float = 0.0  # edge-head loss (objective.edge_training_loss), posed problems only
     include_identity: bool = True
     include_within_view: bool = True
     grad_clip: Optional[float] = None
@@ -68,21 +69,4 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
 
-    def to_dict(self) -> Dict[str, Any]:
-        """Plain JSON-able dict (graph and features nested)."""
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: Dict[str, Any]) -> "TrainConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"TrainConfig: unknown keys {sorted(unknown)}")
-        d = dict(d)
-        if isinstance(d.get("graph"), dict):
-            d["graph"] = GraphConfig(**d["graph"])
-        if isinstance(d.get("features"), dict):
-            d["features"] = FeatureConfig.from_dict(d["features"])
-        return cls(**d)
 

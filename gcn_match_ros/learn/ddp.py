@@ -26,6 +26,7 @@ from typing import List, Mapping, Optional, Tuple
 
 import torch
 import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
 
 __all__ = ["TORCHRUN_VARIABLES", "launched_by_torchrun", "init_process_group", "destroy_process_group", "rank_and_world", "wrap",
            "all_reduce_sums", "barrier"]
@@ -66,8 +67,6 @@ def rank_and_world(distributed: bool) -> Tuple[int, int]:
 def wrap(objective: torch.nn.Module, has_edge_head: bool) -> torch.nn.Module:
     """``DistributedDataParallel`` around the training objective (it broadcasts rank 0's
     weights); an optional head (the edge head) is not used by every step."""
-    from torch.nn.parallel import DistributedDataParallel
-
     return DistributedDataParallel(objective, find_unused_parameters=has_edge_head)
 
 

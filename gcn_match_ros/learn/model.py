@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..configs import JsonConfig
 from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..node_features import FeatureConfig, node_features
 from ..problem import Problem
@@ -143,7 +144,7 @@ def normalized_adjacency(edge_index: Tensor, edge_weight: Tensor, num_nodes: int
 # Configuration
 # ---------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
-class GCNConfig:
+class GCNConfig(JsonConfig):
     """Architecture of :class:`GCN`; serialisable with :meth:`to_dict` / :meth:`from_dict`.
 
     Attributes:
@@ -174,7 +175,7 @@ class GCNConfig:
     eps: float = 1e-5
     # Optional edge-scoring head (0 = none, the paper's model: scores are EEᵀ). With
     # edge_features = F_e > 0 an MLP([e_a·e_b, |e_a − e_b|, edge features]) -> logit scores
-    # the candidate edges of :func:`edge_features.candidate_edges` (k = edge_k).
+    # the candidate edges of :func:`gcn_match_ros.edges.candidates.candidate_edges` (k = edge_k).
     edge_features: int = 0
     edge_hidden: int = 64
     edge_k: int = 4
@@ -205,21 +206,6 @@ class GCNConfig:
             return 0
         return len(self.widths) - 1 if self.norm_layers is None else self.norm_layers
 
-    def to_dict(self) -> Dict[str, Any]:
-        """Plain JSON-able dict (tuples become lists)."""
-        d = dataclasses.asdict(self)
-        d["widths"] = list(self.widths)
-        d["skip_layers"] = list(self.skip_layers)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: Dict[str, Any]) -> "GCNConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"GCNConfig: unknown keys {sorted(unknown)}")
-        return cls(**d)
 
 
 # ---------------------------------------------------------------------------
@@ -310,7 +296,7 @@ class GCN(nn.Module):
     Call ``model(x, edge_index, edge_weight, node_ptr=None)``:
 
     Args:
-        x: (N, in_dim) float node features (:func:`features.node_features`).
+        x: (N, in_dim) float node features (:func:`gcn_match_ros.node_features.node_features`).
         edge_index: (2, E) int64 directed edges of A (both directions of each
             undirected edge, as in :class:`graph.CorrespondenceGraph`), no self loops needed.
         edge_weight: (E,) float edge weights.

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..edges.candidates import EdgeConfig, EdgeSet, candidate_edges
-from ..edges.head import edge_config_of
+from ..edges.head import edge_config_of, has_edge_head
 from ..geometry import fundamental_from_poses, sampson_distance
 from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..node_features import FeatureConfig, calibrated_points, node_features
@@ -66,7 +66,7 @@ def make_sample(problem: Problem, graph_config: GraphConfig = GraphConfig(),
 
 @dataclasses.dataclass
 class Batch:
-    """Samples as one block-diagonal graph (:func:`model.collate`) plus per-graph edges.
+    """Samples as one block-diagonal graph (:func:`.model.collate`) plus per-graph edges.
 
     Shapes:
         x (ΣN_b, F), edge_index (2, ΣE_b), edge_weight (ΣE_b,), node_ptr (B+1,);
@@ -124,8 +124,8 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
     net = getattr(model, "module", model)  # the GCN inside a DistributedDataParallel wrapper
     if isinstance(net, TrainingObjective):
         return model(batch)  # (DDP-wrapped) objective: the loss is its forward
-    edge_head = getattr(net, "edge_head", None) if config.edge_weight else None
-    if net is not model and edge_head is not None:
+    use_edge_head = bool(config.edge_weight) and has_edge_head(net)
+    if net is not model and use_edge_head:
         raise ValueError("train_step: the model is a wrapped GCN with an edge head, which runs outside "
                          "GCN.forward and so outside the wrapper; wrap TrainingObjective(model, config) in "
                          "DistributedDataParallel instead")
@@ -150,7 +150,7 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
                 loss = loss + config.epipolar_weight * epi
             epi_sum += float(epi.detach())
             n_epi += 1
-        if edge_head is not None and sample.has_poses:
+        if use_edge_head and sample.has_poses:
             edge = edge_training_loss(net, E, sample.problem)
             loss = loss + config.edge_weight * edge
             edge_sum += float(edge.detach())

@@ -32,6 +32,14 @@ import time
 from pathlib import Path
 from typing import Dict, Optional, Sequence
 
+import rclpy
+from rclpy.context import Context
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+from tqdm import tqdm
+
 from ..bags.io import BagError, BagInfo, bag_info, iter_raw, restamp_cdr
 from ..bags.typesys import has_header, typestore
 
@@ -86,8 +94,6 @@ def msg_class(msgtype: str):
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from rclpy.utilities import remove_ros_args
-
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(["bag_play"] + argv)[1:])
     if args.rate <= 0 or args.qos_depth < 1 or args.wait_for_subscribers < 0 or args.wait_timeout < 0:
@@ -111,13 +117,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     def on_signal(signum, _frame):
         stop.set()
-
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.node import Node
-    from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                           qos_profile_sensor_data)
-    from rclpy.signals import SignalHandlerOptions
 
     context = Context()
     rclpy.init(args=["bag_play"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
@@ -194,8 +193,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 def _play(args, info: BagInfo, pubs: Dict[str, object], restamp: Dict[str, bool],
           stop: threading.Event, log) -> int:
     """Publish the bag (repeatedly with --loop); returns the number of messages published."""
-    from tqdm import tqdm
-
     total = sum(info.counts.get(t, 0) for t in pubs)
     played = 0
     passes = 0

@@ -26,6 +26,14 @@ import time
 from pathlib import Path
 from typing import Dict, Optional, Sequence
 
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
+
 from ..bags.io import STORAGES, BagError, BagWriter
 from ..bags.typesys import ensure_type
 from .bag_play import msg_class
@@ -73,9 +81,6 @@ class Recorder:
         self.error: Optional[str] = None
 
     def _qos(self, topic: str):
-        from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                               qos_profile_sensor_data)
-
         if self.args.qos == "sensor-data":
             return qos_profile_sensor_data
         reliability = ReliabilityPolicy.RELIABLE
@@ -128,8 +133,6 @@ class Recorder:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from rclpy.utilities import remove_ros_args
-
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(["bag_record"] + argv)[1:])
     if args.duration < 0 or args.count < 0 or args.qos_depth < 1:
@@ -143,12 +146,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
     def on_signal(signum, _frame):
         stop.set()
-
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
 
     try:
         writer = BagWriter(args.output, args.storage, compress=not args.no_compress)

@@ -40,8 +40,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
-from ..bags import BagError, read_bag
-from ..bags.contents import window_labels
+from ..bags.contents import read_bag, window_labels
+from ..bags.io import BagError
+from ..data.scenes import DATA_ROOT
 from ..metrics import score_result
 from ..problem import Problem, Result
 from ..solvers.gcn import DEFAULT_CHECKPOINT
@@ -85,7 +86,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", default="", help="GCN checkpoint (default: the model shipped in the package)")
     p.add_argument("--rate", type=float, default=1.0, help="bag playback rate (default 1: real time)")
     p.add_argument("--out", type=Path, default=None, help="picture path (default out/demo_matches.png)")
-    p.add_argument("--data-root", type=Path, default=REPO.parent / "shared" / "data",
+    p.add_argument("--data-root", type=Path, default=DATA_ROOT,
                    help="dataset root holding the bag's images (for the picture)")
     p.add_argument("--timeout", type=float, default=90.0, help="give up after this many seconds")
     return p

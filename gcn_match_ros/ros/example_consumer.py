@@ -22,8 +22,6 @@ import collections
 import sys
 
 from rclpy.node import Node
-
-from .spin import run_node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from gcn_match_msgs.msg import MatchWindow
@@ -31,6 +29,7 @@ from gcn_match_msgs.msg import MatchWindow
 from ..stamps import ns_to_seconds
 from .conversions import (MatchWindowError, match_window_to_arrays, pairwise_matches, soft_pairwise_matches,
                           window_tracks)
+from .spin import run_node
 
 __all__ = ["MatchConsumer", "summarize", "main"]
 

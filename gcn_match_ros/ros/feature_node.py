@@ -27,8 +27,6 @@ import cv2
 import numpy as np
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.node import Node
-
-from .spin import run_node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -38,6 +36,7 @@ from ..detect import DETECTOR_KINDS, extract_features
 from ..stamps import stamp_to_ns
 from ..windowing import Frame
 from .conversions import frame_to_keypoints
+from .spin import run_node
 
 __all__ = ["FeatureNode", "ImageError", "image_to_gray", "DETECTORS", "main"]
 

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from ..rounding import estimate_universe_size
+from ..rounding import estimate_universe_size, relabel_tracks
 from .base import SoftMatches
 
 __all__ = ["check_inputs", "check_node_limit", "view_index_of", "component_eigh", "select_eigvecs",
@@ -215,7 +215,6 @@ def zhou_rounding(embedding, view_offsets: np.ndarray, threshold: float = 0.5) -
     Returns:
         (N,) int64 track ids (singletons -1), cycle-consistent by construction.
     """
-    from ..rounding import relabel_tracks
     u = _normalise_rows(embedding)
     sparse = sp.issparse(u)
     offs = np.asarray(view_offsets, np.int64)
@@ -271,7 +270,6 @@ def repair_tracks(n: int, view_index: np.ndarray, rows: np.ndarray, cols: np.nda
     Returns:
         (N,) int64 track ids, at most one keypoint per view per track.
     """
-    from ..rounding import relabel_tracks
     rows = np.asarray(rows, np.int64)
     cols = np.asarray(cols, np.int64)
     scores = np.asarray(scores, np.float64)

@@ -1,12 +1,13 @@
-"""Tests of gcn_match_ros.losses: hand-computed values, dense references, gradcheck, geometry."""
+"""Tests of gcn_match_ros.learn.losses: hand-computed values, dense references, gradcheck."""
 import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros.node_features import calibrated_points
-from gcn_match_ros.geometry import epipolar_residuals, essential_from_poses, skew
+from gcn_match_ros.geometry import epipolar_residuals
 from gcn_match_ros.learn.losses import epipolar_loss, reconstruction_loss
-from gcn_match_ros.problem import Problem
+from gcn_match_ros.node_features import calibrated_points
+
+from conftest import calibrated_scene as _scene
 
 D64 = torch.float64
 
@@ -127,43 +128,10 @@ def test_reconstruction_bad_shapes():
 
 
 # ---------------------------------------------------------------------------
-# Epipolar geometry
+# Epipolar loss
 # ---------------------------------------------------------------------------
-def _rotation(rng):
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    return q if np.linalg.det(q) > 0 else -q
-
-
-def _scene(rng, n_views=3, p=12, K=np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])):
-    """Points near the origin seen by cameras ~5 units away; every view a permutation."""
-    P = rng.uniform(-1, 1, size=(p, 3))
-    Rs, ts, kps, tracks = [], [], [], []
-    for _ in range(n_views):
-        R = _rotation(rng)
-        t = np.array([0.0, 0.0, 5.0]) + 0.3 * rng.normal(size=3)
-        perm = rng.permutation(p)
-        x = (K @ (R @ P[perm].T + t[:, None])).T
-        kps.append(x[:, :2] / x[:, 2:])
-        Rs.append(R)
-        ts.append(t)
-        tracks.append(perm)
-    prob = Problem(view_offsets=np.arange(n_views + 1) * p, keypoints=np.concatenate(kps).astype(np.float32),
-                   descriptors=np.ones((n_views * p, 4), np.float32), K=np.stack([K] * n_views),
-                   R=np.stack(Rs), t=np.stack(ts), gt_track=np.concatenate(tracks))
-    # exact calibrated points (float32 keypoints would add ~1e-7 noise)
-    X = np.concatenate([(R @ P[perm].T + t[:, None]).T for R, t, perm in zip(Rs, ts, tracks)])
-    X = X / X[:, 2:]
-    return prob, X
-
-
 def _one_hot(track, p):
     return torch.nn.functional.one_hot(torch.as_tensor(track), p).to(D64)
-
-
-def test_skew_is_cross_product():
-    v, w = torch.randn(5, 3, dtype=D64), torch.randn(5, 3, dtype=D64)
-    assert torch.allclose(skew(v) @ w[..., None], torch.linalg.cross(v, w)[..., None])
 
 
 def test_epipolar_hand_computed_and_scale_free():
@@ -198,35 +166,6 @@ def test_epipolar_loss_zero_for_true_matches_and_positive_for_wrong():
         wrong[sl] = np.roll(wrong[sl], 1)
         bad = epipolar_loss(_one_hot(wrong, 12), torch.from_numpy(X), R, t, vo)
         assert bad.item() > 1e-3
-
-
-def test_epipolar_residuals_broadcast_shapes_and_block_form():
-    rng = np.random.default_rng(1)
-    prob, X = _scene(rng, n_views=2, p=7)
-    X = torch.from_numpy(X)
-    R, t = torch.from_numpy(prob.R), torch.from_numpy(prob.t)
-    Xa, Xb = X[:7], X[7:]
-    # row by row
-    r = epipolar_residuals(Xa, Xb, R[0], t[0], R[1], t[1])
-    assert r.shape == (7,)
-    # all pairs: (n, 1, 3) x (1, m, 3) -> (n, m), equals the matrix form
-    allp = epipolar_residuals(Xa[:, None], Xb[None], R[0], t[0], R[1], t[1])
-    assert allp.shape == (7, 7)
-    assert torch.allclose(allp, (Xa @ essential_from_poses(R[0], t[0], R[1], t[1]) @ Xb.T).abs())
-    assert torch.allclose(torch.diagonal(allp), r)
-    # true pairs (same track) are ~0
-    ta, tb = prob.gt_track[:7], prob.gt_track[7:]
-    match = torch.from_numpy(ta[:, None] == tb[None, :])
-    assert allp[match].max() < 1e-12 and allp[~match].min() > 0
-    # batch of poses: (B, N, 3) with (B, 3, 3) / (B, 3) -> (B, N)
-    B = 4
-    Rb, tb_ = R[0].expand(B, 3, 3), t[0].expand(B, 3)
-    Rc, tc = R[1].expand(B, 3, 3), t[1].expand(B, 3)
-    rb = epipolar_residuals(Xa.expand(B, 7, 3), Xb.expand(B, 7, 3), Rb, tb_, Rc, tc)
-    assert rb.shape == (B, 7) and torch.allclose(rb, r.expand(B, 7))
-    # normalised rays bound the residual by 1
-    rn = epipolar_residuals(Xa[:, None], Xb[None], R[0], t[0], R[1], t[1], normalize_rays=True)
-    assert rn.shape == (7, 7) and rn.max() <= 1.0
 
 
 def test_epipolar_bad_shapes():

@@ -1,5 +1,4 @@
-"""The shipped models load safely, beat nn on held-out problems, and give cycle-consistent tracks;
-the gcn solver picks the shipped model by descriptor dimension."""
+"""Tests of gcn_match_ros.solvers.gcn: the shipped models load safely, pick by descriptor, beat nn held out."""
 import dataclasses
 from pathlib import Path
 
@@ -12,7 +11,7 @@ from gcn_match_ros.learn.checkpoint import load_checkpoint
 from gcn_match_ros.problem import load_problem
 from gcn_match_ros.rounding import is_cycle_consistent
 from gcn_match_ros import solvers
-from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT, SHIPPED_MODELS
+from gcn_match_ros.solvers.gcn import SHIPPED_MODELS
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -36,7 +35,6 @@ def test_shipped_models_load_weights_only(kind):
     assert 0.0 < meta["config"]["solver"]["threshold"] < 1.0
 
 
-@pytest.mark.skipif(not (DATA / "oxford" / "graf").is_dir(), reason="shared data not available")
 def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(one_torch_thread):
     from gcn_match_ros.data.convert import make_problem
     from gcn_match_ros.data.scenes import load_scene
@@ -67,7 +65,6 @@ def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(
         solver.solve(brief)
 
 
-@pytest.mark.skipif(not HELD_OUT.is_file(), reason="shared reference problems not available")
 def test_shipped_model_beats_nn_on_held_out_and_is_cycle_consistent():
     torch.set_num_threads(1)
     problem = load_problem(HELD_OUT)

@@ -1,4 +1,4 @@
-"""Candidate edges of the learned edge scorer: features checked against brute-force definitions."""
+"""Tests of gcn_match_ros.edges.candidates: candidate edge features checked against brute-force definitions."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,4 @@
-"""Tests of gcn_match_ros.model: normalisation, batching, shapes, overfitting, checkpoints."""
+"""Tests of gcn_match_ros.learn.model: normalisation, batching, shapes, gradcheck, overfitting one problem."""
 import json
 import time
 
@@ -6,43 +6,17 @@ import numpy as np
 import pytest
 import torch
 
-from gcn_match_ros.node_features import FeatureConfig, feature_dim, node_features
-from gcn_match_ros.graph import GraphConfig, build_graph
-from gcn_match_ros.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from gcn_match_ros.learn.losses import reconstruction_loss
-from gcn_match_ros.learn.model import GCN, GCNConfig, collate, embed_problem, gcn_norm, graph_tensors, normalized_adjacency
-from gcn_match_ros.problem import Problem
+from gcn_match_ros.learn.model import GCN, GCNConfig, collate, embed_problem, gcn_norm, normalized_adjacency
+from gcn_match_ros.node_features import feature_dim
 
+from conftest import (SMALL_GCN_LAYERS as SMALL, gcn_inputs as inputs,
+                      permuted_views_problem_with_attributes as permuted_problem)
 
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_thread(one_torch_thread):
     """Tiny graphs: one intra-op thread is fastest and immune to a busy shared CPU."""
-
-
-SMALL = dict(widths=(16, 16, 24, 24), out_dim=12, groups=4, skip_layers=(2, 4))
-
-
-def permuted_problem(n_views=3, p=20, dim=16, noise=0.3, seed=0):
-    """V views of the same p points, each view a random permutation with noisy descriptors."""
-    rng = np.random.default_rng(seed)
-    base = rng.normal(size=(p, dim))
-    desc, kps, gt = [], [], []
-    for _ in range(n_views):
-        perm = rng.permutation(p)
-        desc.append(base[perm] + noise * rng.normal(size=(p, dim)))
-        kps.append(rng.uniform(0, 640, size=(p, 2)))
-        gt.append(perm)
-    return Problem(view_offsets=np.arange(n_views + 1) * p, keypoints=np.concatenate(kps),
-                   descriptors=np.concatenate(desc), scales=rng.uniform(1, 10, n_views * p),
-                   orientations=rng.uniform(-np.pi, np.pi, n_views * p),
-                   image_size=np.tile([640, 480], (n_views, 1)), gt_track=np.concatenate(gt))
-
-
-def inputs(problem, graph_config=GraphConfig()):
-    g = build_graph(problem, graph_config)
-    ei, ew = graph_tensors(g)
-    return torch.from_numpy(node_features(problem)), ei, ew, g
 
 
 # ---------------------------------------------------------------------------
@@ -200,88 +174,3 @@ def test_small_gcn_overfits_one_problem():
     false_rate = (pred & non_edges).sum() / non_edges.sum()
     assert recall > 0.8 and false_rate < 0.05, (recall, false_rate)
     assert time.perf_counter() - t0 < 15
-
-
-# ---------------------------------------------------------------------------
-# checkpoints
-# ---------------------------------------------------------------------------
-def test_checkpoint_round_trip(tmp_path):
-    prob = permuted_problem()
-    x, ei, ew, _ = inputs(prob)
-    torch.manual_seed(1)
-    model = GCN(GCNConfig(in_dim=x.shape[1], **SMALL)).eval()
-    gcfg, fcfg = GraphConfig(k=3, mutual=True), FeatureConfig(orientation=False)
-    path = tmp_path / "m.pt"
-    save_checkpoint(path, model, {"graph": vars(gcfg).copy(), "features": fcfg.to_dict()}, {"step": 7})
-    loaded, meta = load_checkpoint(path)
-    assert not loaded.training
-    assert meta["model_config"] == model.config
-    assert meta["graph_config"] == gcfg and meta["feature_config"] == fcfg
-    assert meta["extra"]["step"] == 7
-    with torch.no_grad():
-        assert torch.equal(loaded(x, ei, ew), model(x, ei, ew))
-    assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]  # no temp file left
-
-
-def test_checkpoint_errors(tmp_path):
-    model = GCN(GCNConfig(in_dim=20, **SMALL))
-    with pytest.raises(CheckpointError, match="no such checkpoint file"):
-        load_checkpoint(tmp_path / "missing.pt")
-    garbage = tmp_path / "garbage.pt"
-    garbage.write_bytes(b"\x00not a checkpoint" * 10)
-    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
-        load_checkpoint(garbage)
-    good = tmp_path / "good.pt"
-    save_checkpoint(good, model)
-    truncated = tmp_path / "truncated.pt"
-    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
-        load_checkpoint(truncated)
-    other = tmp_path / "other.pt"
-    torch.save({"weights": torch.zeros(3)}, other)
-    with pytest.raises(CheckpointError, match="not a gcn_match_ros/gcn-checkpoint file"):
-        load_checkpoint(other)
-    pickled = tmp_path / "pickled.pt"
-    torch.save({"format": "gcn_match_ros/gcn-checkpoint", "obj": object()}, pickled)
-    with pytest.raises(CheckpointError, match="not a readable checkpoint"):
-        load_checkpoint(pickled)  # refused by weights_only
-    mismatch = tmp_path / "mismatch.pt"
-    save_checkpoint(mismatch, model, {"model": GCNConfig(in_dim=20, widths=(8, 8), groups=4,
-                                                         skip_layers=()).to_dict()})
-    with pytest.raises(CheckpointError, match="weights do not fit"):
-        load_checkpoint(mismatch)
-    badcfg = tmp_path / "badcfg.pt"
-    save_checkpoint(badcfg, model, {"graph": {"k": 0}})
-    with pytest.raises(CheckpointError, match="invalid configuration"):
-        load_checkpoint(badcfg)
-    assert issubclass(CheckpointError, ValueError)
-
-
-# ---------------------------------------------------------------------------
-# node features
-# ---------------------------------------------------------------------------
-def test_node_features_layout_and_fixed_width():
-    from gcn_match_ros.node_features import calibrated_points, normalized_positions
-
-    kp = np.array([[150.0, 140.0], [50.0, 40.0], [0.0, 0.0], [100.0, 50.0]])
-    desc = np.array([[3.0, 4.0], [1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
-    K = np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]])
-    full = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc, scales=[np.e ** 1.5, 1.0, 0.0, 2.0],
-                   orientations=[np.pi / 2, 0.0, -np.pi, 1.0], K=np.stack([K, K]))
-    F = node_features(full)
-    assert F.shape == (4, 2 + 4) and F.dtype == np.float32
-    assert np.allclose(F[0], [0.6, 0.8, 1.0, 1.0, 0.0, 0.5], atol=1e-6)  # K^-1 (150, 140, 1) = (1, 1, 1)
-    assert np.allclose(F[2, 4:], [0.0, -1.0])                      # scale 0 -> 0 column
-    assert np.allclose(calibrated_points(full)[:2], [[1, 1, 1], [0, 0, 1]])
-    bare = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc)
-    Fb = node_features(bare)
-    assert Fb.shape == F.shape and np.all(Fb[:, 4:] == 0)
-    # no K, no image size: centred on each view's keypoint box, divided by its larger side
-    assert np.allclose(Fb[:2, 2:4], [[0.5, 0.5], [-0.5, -0.5]])
-    assert np.allclose(Fb[2:, 2:4], [[-0.5, -0.25], [0.5, 0.25]])
-    sized = Problem(view_offsets=[0, 2, 4], keypoints=kp, descriptors=desc, image_size=[[200, 100], [200, 100]])
-    assert np.allclose(normalized_positions(sized)[0], [(150 - 100) / 200, (140 - 50) / 200])
-    assert node_features(bare, FeatureConfig(position=False, scale=False)).shape == (4, 3)
-    assert feature_dim(2, FeatureConfig(position=False, scale=False)) == 3
-    with pytest.raises(ValueError, match="no intrinsics"):
-        calibrated_points(bare)

@@ -1,4 +1,4 @@
-"""homography_sequence: views that are exact homographies of each other, written in the Oxford layout."""
+"""Tests of gcn_match_ros.data.homography_sequence: views related by exact homographies, in the Oxford layout."""
 import cv2
 import numpy as np
 import pytest

@@ -1,3 +1,4 @@
+"""Tests of gcn_match_ros.problem: Problem and Result, their .npz files and validation."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,4 @@
-"""Distributed data-parallel training (gloo on CPU, loopback only): gradients, resume, torchrun CLI."""
+"""Tests of gcn_match_ros.learn.ddp: data-parallel training (gloo on CPU, loopback only), resume, torchrun CLI."""
 import dataclasses
 import functools
 import json

@@ -1,0 +1,307 @@
+"""The experiment protocol the benchmark scripts (``benchmarks/*.py``) share.
+
+- The split of the real scenes: which windows train the shipped models (:data:`TRAIN_SCENES`,
+  images < :data:`SPLIT_AT`), which validate them (images >= :data:`SPLIT_AT`) and which are
+  never touched (Strecha castle-P19 and every Oxford scene, the held-out test):
+  :func:`images_of`, :func:`split`, :func:`role`, :func:`problem_files`; the fixed subsample
+  of benchmark windows, :func:`windows`.
+- The generated scenes standing in for each detector's descriptors: :data:`SYNTHETIC_DESCRIPTORS`
+  (the descriptor kind of each detector is :data:`gcn_match_ros.detect.DETECTOR_KINDS`).
+- The pose-scene label checks (``label_chance.py``, ``photometric_labels_check.py``): their
+  windows :data:`WINDOWS`, the loop over them :func:`pose_windows` and the count
+  :func:`first_pair_tracks`.
+- Reporting: the header every results file starts with (:func:`results_header`: title, the
+  command that ran, the machine) and the F1 lead of gcn over the best other method with a
+  bootstrap interval (:func:`lead_lines`).
+
+Problem names follow :func:`gcn_match_ros.data.convert.problem_name`:
+``<dataset>_<scene>_<detector>_<views>``, e.g. ``strecha_fountain-P11_sift_4-5-6``.
+A core module: it never imports ROS (rclpy, :mod:`gcn_match_ros.ros`).
+"""
+from __future__ import annotations
+
+import os
+import platform
+import shlex
+import sys
+from pathlib import Path
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from .data.convert import convert
+from .data.scenes import DATA_ROOT, Scene, load_scene, read_gray
+from .detect import Features, extract_features
+from .metrics import count_pairs, paired_bootstrap
+
+__all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "images_of", "split", "role",
+           "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
+           "describe_machine", "command_line", "results_header"]
+
+
+#: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
+TRAIN_SCENES = ["strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple"]
+#: Strecha windows with every image < SPLIT_AT train, every image >= SPLIT_AT validate.
+SPLIT_AT = 6
+#: The generated scenes' descriptors standing in for each detector's
+#: (``descriptor_kind`` of :class:`gcn_match_ros.data.synthetic.SceneConfig`).
+SYNTHETIC_DESCRIPTORS = {"sift": "sift", "orb": "binary"}
+#: Windows (view numbers) of the pose-scene label checks; those past a scene's last view are skipped.
+WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
+
+
+def images_of(name: str) -> List[int]:
+    """The image numbers of a problem's window, read back from its name.
+
+    Args:
+        name: a problem name (or file stem), e.g. ``oxford_graf_sift_123`` or
+            ``strecha_fountain-P11_sift_7-8-9-10``.
+
+    Returns:
+        The numbers in window order, e.g. ``[1, 2, 3]``, ``[7, 8, 9, 10]``.
+    """
+    tail = name.rsplit("_", 1)[1]
+    return [int(x) for x in (tail.split("-") if "-" in tail else list(tail))]
+
+
+def split(files: Sequence[Path]) -> Tuple[List[Path], List[Path]]:
+    """Training and validation problem files of the shipped models.
+
+    Held-out test scenes (castle-P19, every Oxford scene) are dropped; Strecha windows go to
+    training when every image is < :data:`SPLIT_AT`, to validation when every image is >= it,
+    nowhere when they straddle it; other scenes (Middlebury temple) train.
+
+    Args:
+        files: problem files (``.npz``) named by :func:`gcn_match_ros.data.convert.problem_name`.
+
+    Returns:
+        (train, val): the files of each part, in the order given.
+    """
+    train_f, val_f = [], []
+    for f in files:
+        if "castle" in f.name or f.name.startswith("oxford"):
+            continue  # held-out test scenes: never used
+        if f.name.startswith("strecha"):
+            ims = images_of(f.stem)
+            if max(ims) < SPLIT_AT:
+                train_f.append(f)
+            elif min(ims) >= SPLIT_AT:
+                val_f.append(f)
+        else:
+            train_f.append(f)
+    return train_f, val_f
+
+
+def role(name: str) -> str:
+    """A problem's part of the split: ``'test'`` (Oxford, castle-P19: never trained on),
+    ``'train'``, ``'val'``, or ``'train/val overlap'`` (a Strecha window straddling
+    :data:`SPLIT_AT`, used for neither)."""
+    if name.startswith("oxford") or "castle" in name:
+        return "test"
+    ims = images_of(name)
+    return "train" if max(ims) < SPLIT_AT else ("val" if min(ims) >= SPLIT_AT else "train/val overlap")
+
+
+def windows(names: Sequence[str], quick: bool) -> List[str]:
+    """The fixed subsample of windows the real-scene benchmarks score.
+
+    Oxford 123, 234, 1234, 123456 (the dev windows); Strecha one window per size starting at
+    images 0 and 6 (castle also 12); ``quick``: one 3-view window per scene (Oxford 123,
+    Strecha starting at 0).
+
+    Args:
+        names: problem names.
+        quick: the small subset.
+
+    Returns:
+        The kept names, in the order given.
+    """
+    keep = []
+    for n in names:
+        ims = images_of(n)
+        if n.startswith("oxford"):
+            ok = n.rsplit("_", 1)[1] in (("123",) if quick else ("123", "234", "1234", "123456"))
+        else:
+            starts = (0,) if quick else ((0, 6, 12) if "castle" in n else (0, 6))
+            ok = ims[0] in starts and (len(ims) == 3 or not quick)
+        if ok:
+            keep.append(n)
+    return keep
+
+
+def problem_files(data: Union[str, Path], data_root: Union[str, Path], detector: str) -> List[Path]:
+    """The real problem files of :data:`TRAIN_SCENES` for ``detector``.
+
+    Made with :func:`gcn_match_ros.data.convert.convert` (500 keypoints, windows of 3, 4 and 6
+    consecutive views) when the folder holds none.
+
+    Args:
+        data: the problem folder; empty: ``/tmp/real_gcn/train_<detector>``.
+        data_root: the scene folders (:data:`DATA_ROOT` in a checkout).
+        detector: ``'sift'`` or ``'orb'``.
+
+    Returns:
+        The folder's ``.npz`` files, sorted (split them with :func:`split`).
+    """
+    folder = Path(data or f"/tmp/real_gcn/train_{detector}")
+    if not list(folder.glob("*.npz")):
+        convert(Path(data_root), folder, TRAIN_SCENES, sizes=(3, 4, 6), detectors=(detector,), max_features=500)
+    return sorted(folder.glob("*.npz"))
+
+
+def first_pair_tracks(gt: np.ndarray, n0: int, n1: int) -> int:
+    """Pairs labelled true between a window's first two views.
+
+    Args:
+        gt: (N,) int track labels of the window's keypoints, view by view (>= 0: a track;
+            -1 / -2: none / unlabelled).
+        n0: keypoints of view 0 (the first ``n0`` entries); n1: of view 1 (the next ``n1``).
+
+    Returns:
+        The number of tracks with a member in both views.
+    """
+    a, b = gt[:n0], gt[n0:n0 + n1]
+    return len(np.intersect1d(a[a >= 0], b[b >= 0]))
+
+
+def pose_windows(root: Path, scenes: Sequence[str], windows: Sequence[Sequence[int]], detector: str,
+                 features: int) -> Iterator[Tuple[str, Scene, List[int], List[Tuple[Features, np.ndarray]]]]:
+    """Every window that fits each pose scene, with its views' keypoints and images.
+
+    Each image is read and its features extracted once per scene.
+
+    Args:
+        root: the scene folders (:data:`DATA_ROOT`).
+        scenes: scene ids, e.g. ``"strecha/castle-P19"``.
+        windows: view numbers of each window (e.g. :data:`WINDOWS`); windows past a scene's
+            last view are skipped.
+        detector: ``'sift'`` or ``'orb'``; features: keypoints per view.
+
+    Yields:
+        (scene id, Scene, window as a list, views): per window view its
+        :class:`~gcn_match_ros.detect.Features` and (H, W) uint8 grey image.
+    """
+    for name in scenes:
+        scene = load_scene(root, name)
+        cache = {}
+        for win in windows:
+            if max(win) >= scene.n_views:
+                continue
+            for v in win:
+                if v not in cache:
+                    image = read_gray(scene.image_paths[v])
+                    cache[v] = (extract_features(image, detector, features), image)
+            yield name, scene, list(win), [cache[v] for v in win]
+
+
+def lead_lines(rep: Dict, problems: Sequence, subsets: Dict[str, Sequence[str]]) -> List[str]:
+    """Markdown lines: the first gcn method's F1 lead over the best other method.
+
+    The rival is the non-gcn method with the best mean F1 among those that solved every
+    problem; the lead is the mean difference over windows with a 95% paired bootstrap
+    interval (:func:`gcn_match_ros.metrics.paired_bootstrap`), for all problems and for each
+    subset, with the labelled true pairs of each.
+
+    Args:
+        rep: a report of :func:`gcn_match_ros.evaluation.evaluate` on ``problems``.
+        problems: the scored problems.
+        subsets: label -> problem names (subsets of ``problems``).
+
+    Returns:
+        The lines (a heading and one per subset); none when there is no gcn method or no rival.
+    """
+    names = [p.name for p in problems]
+    full = {spec: e for spec, e in rep["methods"].items()
+            if not e.get("reference") and all(n in e["per_problem"] for n in names)}
+    gcn = [spec for spec in full if spec.startswith("gcn")]
+    if not gcn:
+        return []
+    f1 = {spec: np.array([e["per_problem"][n]["F1"] for n in names]) for spec, e in full.items()}
+    rivals = [spec for spec in full if not spec.startswith("gcn")]
+    if not rivals:
+        return []
+    rival = max(rivals, key=lambda spec: f1[spec].mean())
+    true_pairs = {p.name: count_pairs(p.gt_track, p.view_index)[1] for p in problems}
+    lines = [f"\nF1 lead of {full[gcn[0]]['describe']} over the best other method, {full[rival]['describe']} "
+             "(mean over windows; 95% bootstrap interval over windows):\n"]
+    for label, ns in [("all", names)] + list(subsets.items()):
+        idx = [names.index(n) for n in ns]
+        if not idx:
+            continue
+        mean, lo, hi = paired_bootstrap(f1[gcn[0]][idx], f1[rival][idx])
+        lines.append(f"- {label}: {mean:+.3f} [{lo:+.3f}, {hi:+.3f}], {len(idx)} windows, "
+                     f"{sum(true_pairs[n] for n in ns)} labelled true pairs")
+    return lines
+
+
+def cpu_name() -> str:
+    """The CPU model (``/proc/cpuinfo``'s model name), else ``platform.processor()`` or 'unknown'."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def describe_machine(torch_threads: Union[None, int, str] = None, extra: Sequence[str] = ()) -> str:
+    """One line describing the machine a result was measured on.
+
+    Args:
+        torch_threads: torch's intra-op threads as the script set them (e.g. ``1`` or
+            ``"1 per run"``); given, the torch version is named too; None: torch not mentioned.
+        extra: further items appended (e.g. the load average).
+
+    Returns:
+        E.g. ``nproc=2, CPU: AMD EPYC, Python 3.11.7, torch 2.13.0+cpu, torch threads 1``; nproc
+        counts the cores this process may run on (and the machine's, when fewer).
+    """
+    total = os.cpu_count()
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else total
+    parts = [f"nproc={usable}" + (f" of {total} CPUs" if usable != total else ""), f"CPU: {cpu_name()}",
+             f"Python {platform.python_version()}"]
+    if torch_threads is not None:
+        import torch
+
+        parts.append(f"torch {torch.__version__}, torch threads {torch_threads}")
+    return ", ".join(parts + list(extra))
+
+
+def command_line(script: Union[str, Path], argv: Optional[Sequence[str]] = None, launcher: str = ".venv/bin/python",
+                 env: Sequence[str] = ()) -> str:
+    """The shell command that ran a script, to repeat it.
+
+    Args:
+        script: the script's path (``__file__``); shown relative to the repository when inside it.
+        argv: its arguments; None: ``sys.argv[1:]``.
+        launcher: what ran it, e.g. ``.venv/bin/python`` or ``./run.sh python``.
+        env: names of environment variables shown before the command when set (e.g.
+            ``OPENBLAS_NUM_THREADS``).
+
+    Returns:
+        E.g. ``.venv/bin/python benchmarks/real_eval.py --quick``.
+    """
+    path, repo = Path(script).resolve(), Path(__file__).resolve().parents[1]
+    shown = path.relative_to(repo) if path.is_relative_to(repo) else Path(script)
+    args = list(sys.argv[1:] if argv is None else argv)
+    prefix = [f"{k}={shlex.quote(os.environ[k])}" for k in env if k in os.environ]
+    return " ".join(prefix + [launcher, shlex.join([str(shown)] + [str(a) for a in args])])
+
+
+def results_header(title: str, script: Union[str, Path], argv: Optional[Sequence[str]] = None,
+                   torch_threads: Union[None, int, str] = None, machine_extra: Sequence[str] = (),
+                   launcher: str = ".venv/bin/python", env: Sequence[str] = ()) -> List[str]:
+    """The first lines of a results file: title, command, machine.
+
+    Args:
+        title: the heading (without ``#``).
+        script, argv, launcher, env: as :func:`command_line`.
+        torch_threads, machine_extra: as :func:`describe_machine` (``torch_threads``, ``extra``).
+
+    Returns:
+        Markdown lines ``# title``, blank, ``Command: `...` `` and ``Machine: ...`` (each ending
+        in a markdown line break); the script's own notes follow.
+    """
+    return [f"# {title}\n", f"Command: `{command_line(script, argv, launcher, env)}`  ",
+            f"Machine: {describe_machine(torch_threads, machine_extra)}  "]

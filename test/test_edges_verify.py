@@ -1,0 +1,70 @@
+"""Tests of gcn_match_ros.edges.verify: two-view models fitted on seed pairs, and their residuals."""
+import numpy as np
+import pytest
+
+from gcn_match_ros import geometry
+from gcn_match_ros.edges.verify import MIN_SEEDS, PairModel, fit_pair, residuals
+
+from conftest import look_at
+
+H_TRUE = np.array([[1.1, 0.05, 12.0], [-0.03, 0.95, -7.0], [2e-4, -1e-4, 1.0]])
+K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+
+
+def _non_planar_pairs(rng, n=60):
+    """Pixels of n points of a 6 m cube in two cameras 20 deg apart, and their true F."""
+    R_a, t_a = look_at(np.array([0.0, -10, 0.5]), np.zeros(3))
+    angle = np.radians(20)
+    R_b, t_b = look_at(np.array([10 * np.sin(angle), -10 * np.cos(angle), 1.0]), np.zeros(3))
+    X = rng.uniform(-3, 3, (n, 3))
+    xa, xb = geometry.project(K, R_a, t_a, X)[0], geometry.project(K, R_b, t_b, X)[0]
+    return xa, xb, geometry.fundamental_from_poses(K, R_a, t_a, K, R_b, t_b)
+
+
+def test_points_related_by_a_homography_give_a_planar_model():
+    rng = np.random.default_rng(0)
+    xa = rng.uniform(0, 640, (40, 2))
+    xb = geometry.transfer(H_TRUE, xa)
+    model = fit_pair(xa, xb)
+    assert model is not None and model.planar and model.H is not None
+    np.testing.assert_allclose(model.H / model.H[2, 2], H_TRUE, atol=1e-2)
+    res_h, _ = residuals(model, xa, xb)
+    assert res_h.max() < 1e-2  # pixels: exact data, up to the estimator's own precision (~1e-4)
+    selected = model.selected()
+    assert selected.planar and selected.F is None and selected.H is model.H
+
+
+def test_points_of_a_3d_scene_give_a_fundamental_matrix():
+    rng = np.random.default_rng(1)
+    xa, xb, F_true = _non_planar_pairs(rng)
+    model = fit_pair(xa, xb)
+    assert model is not None and not model.planar and model.F is not None
+    _, res_f = residuals(model, xa, xb)
+    assert res_f.max() < 1e-2
+    F, G = model.F / np.linalg.norm(model.F), F_true / np.linalg.norm(F_true)
+    np.testing.assert_allclose(F * np.sign(np.sum(F * G)), G, atol=1e-5)  # the same F, up to scale
+    assert model.selected().H is None
+
+
+def test_too_few_seeds_give_no_model():
+    rng = np.random.default_rng(2)
+    xa = rng.uniform(0, 640, (MIN_SEEDS - 1, 2))
+    assert fit_pair(xa, geometry.transfer(H_TRUE, xa)) is None
+    assert fit_pair(np.zeros((0, 2)), np.zeros((0, 2))) is None
+
+
+def test_residuals_are_symmetric_transfer_and_sampson_errors():
+    rng = np.random.default_rng(3)
+    xa, xb, F_true = _non_planar_pairs(rng, n=15)
+    res_h, res_f = residuals(PairModel(H_TRUE, F_true), xa, xb)
+    H_inv = np.linalg.inv(H_TRUE)
+    for m, (a, b) in enumerate(zip(xa, xb)):
+        forward = np.linalg.norm(geometry.transfer(H_TRUE, a[None])[0] - b)
+        backward = np.linalg.norm(geometry.transfer(H_inv, b[None])[0] - a)
+        assert res_h[m] == pytest.approx(0.5 * (forward + backward), rel=1e-12)
+    np.testing.assert_array_equal(res_f, geometry.sampson_distance(F_true, xa, xb))
+    assert res_f.max() < 1e-9  # true pairs under the true F
+    only_h, missing_f = residuals(PairModel(H_TRUE, None), xa, xb)
+    assert np.all(np.isinf(missing_f)) and np.array_equal(only_h, res_h)
+    missing_h, _ = residuals(PairModel(None, F_true), xa, xb)
+    assert np.all(np.isinf(missing_h))

@@ -1,0 +1,94 @@
+"""Tests of gcn_match_ros.similarity: descriptor similarity blocks, computed once per view pair and shared."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.descriptors import NORMALIZATIONS, normalize_descriptors
+from gcn_match_ros.edges.candidates import EdgeConfig, candidate_edges
+from gcn_match_ros.graph import GraphConfig, build_graph
+from gcn_match_ros.similarity import DescriptorSimilarity
+
+from conftest import permuted_views_problem
+
+
+def _block_bytes(problem, i, j):
+    return int(problem.view_sizes[i] * problem.view_sizes[j] * 4)  # float32
+
+
+@pytest.mark.parametrize("normalization", NORMALIZATIONS)
+def test_block_is_the_product_of_normalised_descriptors(normalization):
+    problem = permuted_views_problem(n_views=3, n_points=10, noise=0.2)
+    sim = DescriptorSimilarity(problem)
+    d = torch.from_numpy(normalize_descriptors(problem.descriptors, normalization))
+    offs = problem.view_offsets
+    for i in range(3):
+        for j in range(i + 1, 3):
+            expected = d[offs[i]:offs[i + 1]] @ d[offs[j]:offs[j + 1]].T
+            blk = sim.block(i, j, normalization)
+            assert blk.dtype == torch.float32 and torch.equal(blk, expected)
+            # the other direction is the transpose, the same memory, not computed again
+            computed = sim.computed
+            back = sim.block(j, i, normalization)
+            assert torch.equal(back, blk.T) and back.data_ptr() == blk.data_ptr()
+            assert sim.computed == computed
+    assert torch.equal(sim.view(1, normalization), d[offs[1]:offs[2]])
+
+
+def test_each_block_is_computed_once_per_normalization():
+    problem = permuted_views_problem(n_views=3, n_points=8)
+    sim = DescriptorSimilarity(problem)
+    first = sim.block(0, 1, "l2")
+    assert sim.block(0, 1, "l2") is first and sim.computed == 1
+    sim.block(1, 0, "l2")
+    sim.block(0, 2, "l2")
+    assert sim.computed == 2
+    sim.block(0, 1, "rootsift")  # another similarity: a block of its own
+    assert sim.computed == 3 and sim.recomputed == 0
+    assert sim.cached_bytes == 3 * _block_bytes(problem, 0, 1)
+
+
+def test_a_small_budget_evicts_least_recently_used_blocks():
+    problem = permuted_views_problem(n_views=3, n_points=8)
+    one_block = _block_bytes(problem, 0, 1)
+    sim = DescriptorSimilarity(problem, budget_bytes=one_block)
+    a = sim.block(0, 1, "l2")
+    sim.block(0, 2, "l2")  # evicts (0, 1)
+    assert sim.cached_bytes == one_block and sim.recomputed == 0
+    again = sim.block(0, 1, "l2")
+    assert (sim.computed, sim.recomputed) == (3, 1)
+    assert torch.equal(again, a)  # the same values, computed again
+    # a block larger than the whole budget is never kept
+    none_kept = DescriptorSimilarity(problem, budget_bytes=0)
+    for _ in range(3):
+        none_kept.block(1, 2, "l2")
+    assert (none_kept.computed, none_kept.recomputed, none_kept.cached_bytes) == (3, 2, 0)
+
+
+def test_unknown_normalization_is_refused():
+    sim = DescriptorSimilarity(permuted_views_problem())
+    with pytest.raises(ValueError, match=r"normalization must be one of \('l2', 'rootsift'\), got 'l1'"):
+        sim.block(0, 1, "l1")
+
+
+def _same_arrays(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+
+
+def test_graph_and_candidates_are_the_same_with_a_shared_similarity():
+    problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([7, 0]))
+    graph_config, edge_config = GraphConfig(), EdgeConfig()
+    assert graph_config.normalization != edge_config.normalization  # two similarities per view pair
+    shared = DescriptorSimilarity(problem)
+    graph = build_graph(problem, graph_config, shared)
+    edges = candidate_edges(problem, edge_config, shared)
+    assert _same_arrays(graph, build_graph(problem, graph_config))
+    assert _same_arrays(edges, candidate_edges(problem, edge_config))
+    assert edges.rows.size > 0 and graph.n_edges > 0
+    # every (normalization, view pair) block computed once, and read again from the cache
+    assert (shared.computed, shared.recomputed) == (2 * 3, 0)
+    build_graph(problem, graph_config, shared)
+    candidate_edges(problem, edge_config, shared)
+    assert shared.computed == 2 * 3
