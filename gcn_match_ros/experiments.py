@@ -77,27 +77,19 @@ def split(files: Sequence[Path]) -> Tuple[List[Path], List[Path]]:
     Returns:
         (train, val): the files of each part, in the order given.
     """
-    train_f, val_f = [], []
-    for f in files:
-        if "castle" in f.name or f.name.startswith("oxford"):
-            continue  # held-out test scenes: never used
-        if f.name.startswith("strecha"):
-            ims = images_of(f.stem)
-            if max(ims) < SPLIT_AT:
-                train_f.append(f)
-            elif min(ims) >= SPLIT_AT:
-                val_f.append(f)
-        else:
-            train_f.append(f)
-    return train_f, val_f
+    parts = [role(Path(f).stem) for f in files]
+    return ([f for f, r in zip(files, parts) if r == "train"], [f for f, r in zip(files, parts) if r == "val"])
 
 
 def role(name: str) -> str:
-    """A problem's part of the split: ``'test'`` (Oxford, castle-P19: never trained on),
-    ``'train'``, ``'val'``, or ``'train/val overlap'`` (a Strecha window straddling
-    :data:`SPLIT_AT`, used for neither)."""
+    """A problem's part of the split (the one rule :func:`split` applies): ``'test'`` (Oxford,
+    castle-P19: never trained on), ``'train'`` (other non-Strecha scenes, i.e. the temple, and
+    Strecha windows below :data:`SPLIT_AT`), ``'val'``, or ``'train/val overlap'`` (a Strecha
+    window straddling :data:`SPLIT_AT`, used for neither)."""
     if name.startswith("oxford") or "castle" in name:
         return "test"
+    if not name.startswith("strecha"):
+        return "train"
     ims = images_of(name)
     return "train" if max(ims) < SPLIT_AT else ("val" if min(ims) >= SPLIT_AT else "train/val overlap")
 

@@ -1,4 +1,4 @@
-"""Tests of gcn_match_ros.cli: `gcn-match train` and `gcn-match synth` end to end, one-line errors."""
+"""Tests of gcn_match_ros.cli: `gcn-match train`, synth, plot, make-bags, match and eval end to end; one-line errors."""
 import json
 from pathlib import Path
 
@@ -10,6 +10,8 @@ from gcn_match_ros.bags.source import BagSource
 from gcn_match_ros.learn.checkpoint import load_checkpoint
 from gcn_match_ros.learn.sources import data_source
 from gcn_match_ros.node_features import feature_dim
+
+from conftest import rigid_motion_2d, write_oxford_like_scene
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -94,3 +96,187 @@ def test_gcn_match_train_fine_tunes_the_shipped_model_from_a_bag(tmp_path, capsy
     problem = BagSource(bag, cycle=False).problems[0]
     result = solvers.create(f"gcn:checkpoint={run / 'checkpoint.pt'}").solve(problem)
     assert result.track.shape == (problem.n_keypoints,)
+
+
+# ---------------------------------------------------------------------------
+# gcn-match plot, make-bags, match, eval
+# ---------------------------------------------------------------------------
+TINY_MODEL = {"widths": [16, 16, 16, 16], "out_dim": 16, "groups": 4, "skip_layers": [2, 4]}
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run_cli(capsys, *argv):
+    """(exit status, stdout, stderr) of ``gcn-match argv``."""
+    rc = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def assert_one_line_error(rc, err, message):
+    assert rc == 2 and err.startswith("gcn-match: error: ") and message in err and err.count("\n") == 1, err
+
+
+def assert_png_file(path):
+    import cv2
+
+    assert path.is_file() and path.read_bytes()[:8] == PNG_MAGIC
+    img = cv2.imread(str(path))
+    assert img is not None and min(img.shape[:2]) > 50
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A 2-step training run of a tiny GCN on generated scenes (checkpoints, history)."""
+    d = tmp_path_factory.mktemp("tiny_run")
+    cfg = d / "model.json"
+    cfg.write_text(json.dumps(TINY_MODEL))
+    run = d / "run"
+    rc = cli.main(["train", "--train", "synth:easy:3", "--val", "synth:easy:3", "-o", str(run), "--steps", "2",
+                   "--batch", "1", "--model-config", str(cfg)])
+    assert rc == 0
+    return run
+
+
+def test_gcn_match_plot_curves_and_figures_of_a_run(tmp_path, capsys, tiny_run):
+    figs = {name: tmp_path / "figs" / f"{name}.png" for name in ("curves", "pr", "similarity", "histograms")}
+    rc, out, err = run_cli(capsys, "plot", tiny_run, "-o", figs["curves"], "--data", "synth:easy:3", "--count", "2",
+                           "--pr", figs["pr"], "--similarity", figs["similarity"], "--histograms", figs["histograms"])
+    assert rc == 0, err
+    for path in figs.values():
+        assert_png_file(path)
+        assert str(path) in out.splitlines()  # each figure's path is printed
+    # curves only, two runs with names of their own
+    rc, out, err = run_cli(capsys, "plot", tiny_run, tiny_run / "history.json", "-o", tmp_path / "two.png",
+                           "--labels", "first", "second")
+    assert rc == 0 and out.strip() == str(tmp_path / "two.png"), err
+    assert_png_file(tmp_path / "two.png")
+
+
+def test_gcn_match_plot_errors_are_one_line(tmp_path, capsys, tiny_run):
+    cases = [
+        (["--labels", "a", "b"], "--labels: 2 names for 1 runs"),
+        (["--pr", tmp_path / "pr.png"], "--pr, --similarity and --histograms need --data"),
+    ]
+    for extra, message in cases:
+        rc, _, err = run_cli(capsys, "plot", tiny_run, "-o", tmp_path / "c.png", *extra)
+        assert_one_line_error(rc, err, message)
+    rc, _, err = run_cli(capsys, "plot", tmp_path / "no_run", "-o", tmp_path / "c.png")
+    assert_one_line_error(rc, err, "no such history file")
+    assert not (tmp_path / "pr.png").exists()
+
+
+@pytest.fixture
+def tiny_data_root(tmp_path):
+    """A data root with one 3-image scene in the Oxford layout: homography/tiny."""
+    root = tmp_path / "data"
+    write_oxford_like_scene(root / "homography" / "tiny", rigid_motion_2d(4, 5, -3), n=3)
+    return root
+
+
+def test_gcn_match_make_bags_writes_a_bag_and_replaces_it_only_with_force(tmp_path, capsys, tiny_data_root):
+    from gcn_match_ros.bags.contents import read_bag
+
+    out = tmp_path / "bags"
+    args = ["make-bags", "--out", out, "--data-root", tiny_data_root, "--scenes", "homography/tiny",
+            "--max-features", "40", "-q"]
+    rc, stdout, err = run_cli(capsys, *args)
+    assert rc == 0, err
+    bag = out / "homography_tiny_sift.mcap"
+    assert bag.is_file() and sorted(p.name for p in out.iterdir()) == [bag.name]
+    assert stdout.startswith(f"{bag}: ") and ", 3 frames, " in stdout  # 3 cameras, 3 images: one capture
+    contents = read_bag(bag, progress=False)
+    assert contents.cameras == ["cam0", "cam1", "cam2"] and contents.n_frames == 3
+    assert [contents.sources[c] for c in contents.cameras] == [["homography/tiny/img1.png"],
+                                                              ["homography/tiny/img2.png"],
+                                                              ["homography/tiny/img3.png"]]
+    assert all(0 < f.count <= 40 for c in contents.cameras for f in contents.frames[c])
+    assert all(len(lab) == f.count for c in contents.cameras for f, lab in zip(contents.frames[c], contents.labels[c]))
+    before = bag.read_bytes()
+    # an existing bag is kept without --force ...
+    rc, _, err = run_cli(capsys, *args)
+    assert_one_line_error(rc, err, f"{bag} exists (use --force to replace it)")
+    assert bag.read_bytes() == before
+    # ... and replaced with it (the same scene and settings give the same bag)
+    rc, _, err = run_cli(capsys, *args, "--force")
+    assert rc == 0, err
+    assert bag.read_bytes() == before
+    # a rosbag2 folder (sqlite3) is replaced with --force too
+    folder = out / "homography_tiny_sift"
+    rc, _, err = run_cli(capsys, *args, "--storage", "sqlite3", "--cameras", "2")
+    assert rc == 0 and folder.is_dir(), err
+    assert read_bag(folder, progress=False).n_frames == 4  # 2 captures of 2 cameras
+    rc, _, err = run_cli(capsys, *args, "--storage", "sqlite3")
+    assert_one_line_error(rc, err, "exists (use --force to replace it)")
+    rc, _, err = run_cli(capsys, *args, "--storage", "sqlite3", "--force")
+    assert rc == 0 and read_bag(folder, progress=False).n_frames == 3, err
+
+
+def test_gcn_match_make_bags_errors_are_one_line(tmp_path, capsys, tiny_data_root):
+    base = ["make-bags", "--out", tmp_path / "bags", "--data-root", tiny_data_root, "--max-features", "40", "-q"]
+    cases = [
+        (["--scenes", "homography/nope"], "homography/nope: "),
+        (["--scenes", "nowhere/x"], "unknown dataset 'nowhere'"),
+        (["--scenes", "homography/tiny", "--cameras", "4"], "n_cameras must be in [2, 3]"),
+        (["--scenes", "homography/tiny", "--stagger", "0.5"], "stagger"),
+        (["--scenes", "homography/tiny", "--detector", "akaze"], "invalid choice: 'akaze'"),
+    ]
+    for extra, message in cases:
+        rc, _, err = run_cli(capsys, *base, *extra)
+        assert_one_line_error(rc, err, message)
+    assert not list((tmp_path / "bags").glob("*.mcap"))
+
+
+@pytest.fixture
+def synth_problems(tmp_path, capsys):
+    """Two generated 3-view problems (SIFT-like descriptors) written by `gcn-match synth`."""
+    folder = tmp_path / "problems"
+    assert cli.main(["synth", "-o", str(folder), "--preset", "easy", "--count", "2", "--seed", "4"]) == 0
+    capsys.readouterr()
+    files = sorted(folder.glob("*.npz"))
+    assert len(files) == 2
+    return files
+
+
+def test_gcn_match_match_writes_a_result(tmp_path, capsys, synth_problems):
+    from gcn_match_ros.problem import load_problem, load_result
+    from gcn_match_ros.rounding import is_cycle_consistent
+
+    problem = load_problem(synth_problems[0])
+    for method in ("gcn", "nn:graph=mutual"):  # gcn (the shipped model) is the default
+        out = tmp_path / f"{method.split(':')[0]}.npz"
+        extra = [] if method == "gcn" else ["--method", method]
+        rc, stdout, err = run_cli(capsys, "match", synth_problems[0], "-o", out, *extra)
+        assert rc == 0, err
+        result = load_result(out)
+        assert result.track.shape == (problem.n_keypoints,) and is_cycle_consistent(result.track, problem.view_index)
+        assert stdout.startswith(f"{problem.name}: {result.method}: ") and stdout.rstrip().endswith(f"-> {out}")
+        assert f"{int(result.track.max()) + 1} tracks, {result.pair_rows.size} scored pairs" in stdout
+    rc, _, err = run_cli(capsys, "match", tmp_path / "missing.npz", "-o", tmp_path / "r.npz")
+    assert_one_line_error(rc, err, "missing.npz")
+    rc, _, err = run_cli(capsys, "match", synth_problems[0], "--method", "nope", "-o", tmp_path / "r.npz")
+    assert_one_line_error(rc, err, "unknown method 'nope'")
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_gcn_match_eval_table_json_and_pr_plot(tmp_path, capsys, synth_problems):
+    folder = synth_problems[0].parent
+    report_path, pr_path = tmp_path / "report.json", tmp_path / "pr.png"
+    rc, stdout, err = run_cli(capsys, "eval", str(folder / "*.npz"), "--methods", "nn;matchals:iters=5,max_nodes=100",
+                              "--json", report_path, "--pr-plot", pr_path, "-q")
+    assert rc == 0, err
+    report = json.loads(report_path.read_text())
+    assert report["problems"] == [f.stem for f in synth_problems]
+    assert list(report["methods"]) == ["nn", "matchals:iters=5,max_nodes=100", "identity", "all-zero"]
+    dense = report["methods"]["matchals:iters=5,max_nodes=100"]  # 240 keypoints: over its node limit
+    assert dense["per_problem"] == {} and sorted(dense["skipped"]) == report["problems"]
+    assert set(report["methods"]["nn"]["per_problem"]) == set(report["problems"])
+    lines = stdout.splitlines()
+    assert lines[0].startswith("| method | P | R | F1 |")
+    assert [line.split("|")[1].strip() for line in lines[2:6]] == ["nn", "matchals:iters=5,max_nodes=100",
+                                                                   "identity", "all-zero"]
+    assert "matchals:iters=5,max_nodes=100 skipped" in stdout
+    assert_png_file(pr_path)
+    rc, _, err = run_cli(capsys, "eval", str(tmp_path / "none" / "*.npz"), "--methods", "nn")
+    assert_one_line_error(rc, err, "no file matches")
+    rc, _, err = run_cli(capsys, "eval", synth_problems[0], "--methods", "nn,bogus", "-q")
+    assert_one_line_error(rc, err, "unknown method 'bogus'")

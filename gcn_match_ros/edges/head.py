@@ -28,10 +28,11 @@ def edge_config_of(model: torch.nn.Module) -> EdgeConfig:
 
 
 def edge_probabilities(model: torch.nn.Module, embeddings: torch.Tensor, edges: EdgeSet) -> np.ndarray:
-    """sigmoid of the head's logit for every candidate edge.
+    """sigmoid of the head's logit for every candidate edge (no gradients: inference).
 
     Shapes: embeddings (N, d) on the model's device, edges with M candidates -> (M,) float32.
     """
-    logits = model.score_edges(embeddings, torch.from_numpy(edges.rows), torch.from_numpy(edges.cols),
-                               torch.from_numpy(edges.features))
-    return torch.sigmoid(logits).numpy()
+    with torch.no_grad():
+        logits = model.score_edges(embeddings, torch.from_numpy(edges.rows), torch.from_numpy(edges.cols),
+                                   torch.from_numpy(edges.features))
+    return torch.sigmoid(logits).cpu().numpy()

@@ -1,0 +1,56 @@
+"""Tests of gcn_match_ros.edges.head: which models score edges, their candidate settings, the probabilities."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from gcn_match_ros.edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
+from gcn_match_ros.edges.head import edge_config_of, edge_probabilities, has_edge_head
+from gcn_match_ros.learn.model import GCN, GCNConfig, embed_problem
+from gcn_match_ros.node_features import feature_dim
+
+from conftest import SMALL_GCN_LAYERS, permuted_views_problem_with_attributes
+
+PLAIN = GCNConfig(in_dim=feature_dim(16), **SMALL_GCN_LAYERS)
+WITH_HEAD = dataclasses.replace(PLAIN, edge_features=len(EDGE_FEATURES), edge_hidden=8, edge_k=3)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread(one_torch_thread):
+    """Tiny graphs: one intra-op thread is fastest and immune to a busy shared CPU."""
+
+
+def test_has_edge_head():
+    torch.manual_seed(0)
+    assert has_edge_head(GCN(WITH_HEAD))
+    assert not has_edge_head(GCN(PLAIN))  # the paper's model: scores are EEᵀ
+    assert not has_edge_head(torch.nn.Linear(2, 2))
+
+
+def test_edge_config_of_takes_k_from_the_model():
+    torch.manual_seed(0)
+    assert edge_config_of(GCN(WITH_HEAD)) == EdgeConfig(k=3)
+    assert edge_config_of(GCN(dataclasses.replace(WITH_HEAD, edge_k=6))).k == 6
+
+
+def test_edge_probabilities_are_the_sigmoid_of_the_head_logits():
+    problem = permuted_views_problem_with_attributes(n_views=3, p=12, dim=16)
+    torch.manual_seed(0)
+    model = GCN(WITH_HEAD)
+    E, _ = embed_problem(model, problem)
+    edges = candidate_edges(problem, edge_config_of(model))
+    m = edges.rows.shape[0]
+    assert m > 0 and edges.features.shape == (m, len(EDGE_FEATURES))
+    emb = torch.from_numpy(E)
+    with torch.no_grad():  # as at inference (the gcn solver runs it in inference mode)
+        got = edge_probabilities(model, emb, edges)
+        logits = model.score_edges(emb, torch.from_numpy(edges.rows), torch.from_numpy(edges.cols),
+                                   torch.from_numpy(edges.features))
+    assert got.shape == (m,) and got.dtype == np.float32
+    np.testing.assert_allclose(got, torch.sigmoid(logits).numpy(), rtol=1e-6)
+    assert np.all((got > 0) & (got < 1))
+    # the head reads the edge features: other features, other probabilities
+    shifted = dataclasses.replace(edges, features=edges.features + 1.0)
+    with torch.no_grad():
+        assert not np.allclose(edge_probabilities(model, emb, shifted), got)
