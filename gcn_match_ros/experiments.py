@@ -29,12 +29,14 @@ from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .data.convert import convert
+from .data.convert import convert, make_problem
 from .data.scenes import DATA_ROOT, Scene, load_scene, read_gray
 from .detect import Features, extract_features
 from .metrics import count_pairs, paired_bootstrap
+from .problem import Problem
 
-__all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "images_of", "split", "role",
+__all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "GEOMETRIC_DEV_SCENES",
+           "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
            "describe_machine", "command_line", "results_header"]
 
@@ -46,8 +48,54 @@ SPLIT_AT = 6
 #: The generated scenes' descriptors standing in for each detector's
 #: (``descriptor_kind`` of :class:`gcn_match_ros.data.synthetic.SceneConfig`).
 SYNTHETIC_DESCRIPTORS = {"sift": "sift", "orb": "binary"}
+#: Pose scenes of the geometric evaluation (``benchmarks/geometric_eval.py``): the ones the
+#: shipped models saw in training (their windows are where precision is developed) and the one
+#: never used (castle-P19: checked, never tuned on).
+GEOMETRIC_DEV_SCENES = ("strecha/fountain-P11", "strecha/entry-P10", "middlebury_temple")
+GEOMETRIC_HELD_OUT_SCENES = ("strecha/castle-P19",)
 #: Windows (view numbers) of the pose-scene label checks; those past a scene's last view are skipped.
 WINDOWS = ((0, 1, 2), (6, 7, 8), (0, 1, 2, 3), (6, 7, 8, 9), (0, 1, 2, 3, 4, 5))
+
+
+def spaced_windows(n_views: int, sizes: Sequence[int] = (3, 4, 5, 6, 7, 8), spacings: Sequence[int] = (1, 2, 3),
+                   starts: Optional[int] = 2, first: int = 0) -> List[Tuple[int, ...]]:
+    """Windows of every ``size`` taking every ``spacing``-th view of views ``first`` ..
+    ``n_views - 1`` of a sequence, like the cameras of a rig pointing different ways (wider
+    spacing: less overlap).
+
+    ``starts`` windows per (size, spacing), spread evenly over the positions where the window
+    fits (first and last position for 2; None: every position); sizes that do not fit give none.
+
+    Returns:
+        View index tuples, e.g. (0, 2, 4) for size 3, spacing 2.
+    """
+    out = []
+    for spacing in spacings:
+        for size in sizes:
+            last = n_views - 1 - (size - 1) * spacing
+            if last < first:
+                continue
+            positions = (range(first, last + 1) if starts is None
+                         else np.linspace(first, last, max(1, starts)).round().astype(int).tolist())
+            for start in sorted(set(positions)):
+                out.append(tuple(range(start, start + size * spacing, spacing)))
+    return out
+
+
+def geometric_validation_problems(data_root: Union[str, Path], detector: str,
+                                  max_features: int = 500) -> List[Problem]:
+    """The windows a model's threshold is chosen on by geometric precision: every
+    :func:`spaced_windows` position over the validation images (>= :data:`SPLIT_AT`) of the
+    Strecha :data:`TRAIN_SCENES`, with cameras and pose labels."""
+    out = []
+    for name in TRAIN_SCENES:
+        if not name.startswith("strecha/"):
+            continue
+        scene = load_scene(Path(data_root), name)
+        cache: dict = {}
+        for views in spaced_windows(scene.n_views, starts=None, first=SPLIT_AT):
+            out.append(make_problem(scene, views, detector, max_features, cache))
+    return out
 
 
 def images_of(name: str) -> List[int]:

@@ -20,7 +20,7 @@ from torch import Tensor
 
 __all__ = ["homogeneous", "skew", "camera_centers", "fundamental_from_poses", "essential_from_poses",
            "epipolar_residuals", "sampson_distance", "epipolar_distances", "epipolar_distance_matrix", "transfer", "project",
-           "unproject", "triangulate_pair", "matrix_to_quat", "quat_to_matrix", "rt_to_pose", "pose_to_rt"]
+           "unproject", "triangulate_pair", "triangulate_views", "matrix_to_quat", "quat_to_matrix", "rt_to_pose", "pose_to_rt"]
 
 
 def homogeneous(xy: np.ndarray) -> np.ndarray:
@@ -217,6 +217,23 @@ def triangulate_pair(P_a: np.ndarray, P_b: np.ndarray, u_a: np.ndarray, u_b: np.
     rows = [u_a[:, :1] * P_a[2] - P_a[0], u_a[:, 1:] * P_a[2] - P_a[1],
             u_b[:, :1] * P_b[2] - P_b[0], u_b[:, 1:] * P_b[2] - P_b[1]]
     X = np.linalg.svd(np.stack(rows, axis=1))[2][:, -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[:, :3] / X[:, 3:]
+
+
+def triangulate_views(P: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Linear (DLT) triangulation of points seen in m >= 2 views each, a batch at a time.
+
+    Args:
+        P: (B, m, 3, 4) ``[R | t]`` of each member's camera.
+        u: (B, m, 2) the first two entries of K⁻¹ [x, y, 1] of each member.
+
+    Returns:
+        (B, 3) world points (NaN/inf for points at infinity).
+    """
+    rows = np.concatenate([u[..., :1] * P[..., 2, :] - P[..., 0, :],
+                           u[..., 1:] * P[..., 2, :] - P[..., 1, :]], axis=1)  # (B, 2m, 4)
+    X = np.linalg.svd(rows)[2][..., -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         return X[:, :3] / X[:, 3:]
 

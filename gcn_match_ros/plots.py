@@ -6,6 +6,9 @@
   writes ``curves.png`` with it.
 - :func:`plot_pr_curves`: precision–recall curves of an :func:`gcn_match_ros.evaluation.evaluate`
   report.
+- :func:`plot_reliability`: reliability diagram of soft scores — among pairs scored >= s,
+  the share that is right (e.g. geometrically consistent) against s; on or above the
+  diagonal a consumer can read a score as a lower bound of precision.
 - :func:`plot_similarity`: for one (small) problem with ground truth, the input graph A,
   the network's EEᵀ and the ground truth XXᵀ side by side, views in blocks and the
   keypoints of each view ordered by ground-truth track (so true matches form diagonals).
@@ -26,8 +29,8 @@ import numpy as np
 from .graph import CorrespondenceGraph
 from .problem import Problem
 
-__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_similarity", "similarity_order",
-           "cross_view_similarities", "plot_similarity_histograms"]
+__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_similarity",
+           "similarity_order", "cross_view_similarities", "plot_similarity_histograms"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
 _TERMS = ("loss", "recon", "epipolar", "edge")
@@ -177,6 +180,43 @@ def plot_pr_curves(report: Mapping[str, Any], path) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
     ax.set_title(f"Precision–recall over {len(report['problems'])} problems")
+    fig.tight_layout()
+    return _save(fig, path, dpi=120)
+
+
+def plot_reliability(thresholds: Sequence[float], shares: Mapping[str, Sequence[float]], path,
+                     counts: Optional[Mapping[str, Sequence[int]]] = None, title: str = "") -> Path:
+    """Reliability diagram to a PNG: for each method, the right share among pairs scored >= s
+    against s, with the diagonal (share = s) a calibrated score reaches.
+
+    Args:
+        thresholds: (T,) score thresholds s.
+        shares: method -> (T,) right share among pairs scored >= s (NaN where none).
+        counts: method -> (T,) number of those pairs, drawn as a second panel when given.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2 if counts else 1, figsize=(10 if counts else 5.5, 4.5), squeeze=False)
+    ax = axes[0, 0]
+    s = np.asarray(thresholds, float)
+    ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="share = s")
+    for name, y in shares.items():
+        ax.plot(s, np.asarray(y, float), marker="o", label=name)
+    ax.set_xlabel("score threshold s")
+    ax.set_ylabel("right share of pairs scored >= s")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    if counts:
+        axc = axes[0, 1]
+        for name, c in counts.items():
+            axc.plot(s, np.asarray(c, float), marker="o", label=name)
+        axc.set_xlabel("score threshold s")
+        axc.set_ylabel("pairs scored >= s")
+        axc.grid(alpha=0.3)
+        axc.legend(fontsize=8)
+    if title:
+        fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path, dpi=120)
 

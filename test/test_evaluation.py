@@ -5,8 +5,10 @@ import json
 import numpy as np
 import pytest
 
+from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate, format_table
+from gcn_match_ros.geometric_metrics import score_geometric
 from gcn_match_ros.metrics import SCORE_KEYS, count_pairs
 from gcn_match_ros.problem import save_problem
 
@@ -43,7 +45,8 @@ def test_report_lists_problems_methods_and_per_problem_scores(nn_gcn_report):
     json.loads(json.dumps(report))  # JSON-able as documented
     for spec in ("nn", "gcn"):
         entry = report["methods"][spec]
-        assert set(entry) == {"describe", "per_problem", "mean", "skipped", "pr"}
+        posed = {"geometric"} if all(p.has_poses for p in problems) else set()
+        assert set(entry) == {"describe", "per_problem", "mean", "skipped", "pr"} | posed
         assert entry["skipped"] == {} and "reference" not in entry
         assert list(entry["per_problem"]) == names
         for scores in entry["per_problem"].values():
@@ -117,7 +120,7 @@ def test_problem_files_are_loaded_and_problems_without_ground_truth_refused(tmp_
     assert report["problems"] == ["p", "p"]  # a loaded problem is named by its file stem
     assert report["methods"]["nn"]["mean"]["F1"] == pytest.approx(1.0)  # noiseless descriptors
     unlabelled = dataclasses.replace(problem, gt_track=None, name="unlabelled")
-    with pytest.raises(ValueError, match="'unlabelled' has no gt_track"):
+    with pytest.raises(ValueError, match="'unlabelled' has neither gt_track nor cameras"):
         evaluate([problem, unlabelled], ["nn"], progress=False)
     empty = evaluate([], ["nn"], progress=False)
     assert empty["problems"] == [] and list(empty["methods"]) == ["nn"]
@@ -162,3 +165,28 @@ def test_format_table_of_an_evaluation(nn_gcn_report):
     table = format_table(report)
     assert _row_names(table) == ["gcn:model=shipped", "nn", "identity", "all-zero"]  # gcn F1 1.0 > nn
     assert table.count("| 2/2 |") == 2 and "skipped" not in table
+
+
+def test_posed_problems_get_geometric_scores_over_every_predicted_pair(nn_gcn_report):
+    problems, report = nn_gcn_report
+    for spec in ("nn", "gcn"):
+        geo = report["methods"][spec]["geometric"]
+        summaries = [score_geometric(p, solvers.create(spec).solve(p)).summary() for p in problems]
+        assert geo["pairs"] == sum(s["pairs"] for s in summaries)
+        assert geo["consistent"] == sum(s["consistent"] for s in summaries)
+        assert geo["precision"] == pytest.approx(geo["consistent"] / geo["pairs"])
+        assert 0.0 < geo["pooled_recall"] <= 1.0
+    # the union of both methods' consistent pairs holds each method's
+    total = report["methods"]["nn"]["geometric"]["pooled_recall"] + report["methods"]["gcn"]["geometric"]["pooled_recall"]
+    assert total >= 1.0
+    table = format_table(report)
+    assert "P geo" in table and "R pool" in table
+
+
+def test_posed_problems_without_labels_are_scored_geometrically_only():
+    problem = dataclasses.replace(easy_problems(1)[0], gt_track=None, name="posed")
+    report = evaluate([problem], ["nn"], progress=False, with_reference_rows=False)
+    entry = report["methods"]["nn"]
+    assert "F1" not in entry["mean"] and entry["geometric"]["pairs"] > 0
+    assert entry["geometric"]["pooled_recall"] == pytest.approx(1.0)  # the only method: the whole union
+    assert "| nn |" in format_table(report)

@@ -74,7 +74,16 @@ def test_unknown_normalization_is_refused():
 
 
 def _same_arrays(a, b) -> bool:
-    return all(np.array_equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+    """Every field equal; dicts (an EdgeSet's models) key by key, field by field."""
+    def same(x, y):
+        if isinstance(x, dict):
+            return x.keys() == y.keys() and all(same(x[k], y[k]) for k in x)
+        if dataclasses.is_dataclass(x):
+            return y is not None and _same_arrays(x, y)
+        if x is None or y is None:
+            return x is y
+        return np.array_equal(x, y)
+    return all(same(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
 
 
 def test_graph_and_candidates_are_the_same_with_a_shared_similarity():
