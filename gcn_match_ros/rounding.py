@@ -11,6 +11,8 @@ from :func:`estimate_universe_size`, which reads it off the spectrum of the inpu
 """
 from __future__ import annotations
 
+from typing import Callable, Dict, List, Optional
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -21,7 +23,8 @@ __all__ = ["greedy_tracks", "relabel_tracks", "estimate_universe_size", "tracks_
 
 
 def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                  scores: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+                  scores: np.ndarray, threshold: float = 0.5,
+                  compatible: Optional[Callable[[List[int], List[int]], bool]] = None) -> np.ndarray:
     """Merge keypoints into tracks from the best-scored pair down, never two of one view.
 
     Args:
@@ -29,6 +32,10 @@ def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: 
         view_index: (N,) view of each keypoint.
         rows, cols, scores: (M,) candidate pairs and their scores.
         threshold: pairs scoring below it are never merged.
+        compatible: optional further test of each merge, called with the members (keypoint
+            indices) of the two tracks about to be joined; False refuses the merge (e.g.
+            members that disagree with their views' geometry,
+            :class:`gcn_match_ros.edges.consistency.TrackCheck`).
 
     Returns:
         (N,) int64 track ids 0..T-1 for keypoints in a track of >= 2 keypoints, -1 otherwise.
@@ -40,6 +47,7 @@ def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: 
     parent = list(range(n_nodes))
     # Track view sets as Python ints (bit v = view v): any number of views, O(1) disjointness test.
     views = [1 << int(v) for v in view_index]
+    members: Dict[int, List[int]] = {}
     rows, cols = np.asarray(rows)[order].tolist(), np.asarray(cols)[order].tolist()
 
     def find(a: int) -> int:
@@ -54,6 +62,12 @@ def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: 
         ra, rb = find(a), find(b)
         if ra == rb or views[ra] & views[rb]:
             continue
+        if compatible is not None:
+            ma, mb = members.get(ra, [ra]), members.get(rb, [rb])
+            if not compatible(ma, mb):
+                continue
+            members[ra] = ma + mb
+            members.pop(rb, None)
         parent[rb] = ra
         views[ra] |= views[rb]
     roots = np.array([find(a) for a in range(n_nodes)], dtype=np.int64)

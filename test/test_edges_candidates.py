@@ -79,12 +79,33 @@ def test_no_candidates_for_single_keypoint_views():
 
 def test_geometry_falls_back_to_mutual_seeds_when_the_ratio_test_leaves_too_few():
     """Generated SIFT-like descriptors fail Lowe's ratio test almost everywhere; the two-view
-    models are then fitted on mutual nearest neighbours, so every view pair still gets one."""
+    models are then fitted on mutual nearest neighbours, so view pairs still get trusted ones."""
     from gcn_match_ros.data import synthetic
 
     problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([5, 0]))
     es = candidate_edges(problem)
     f = {name: es.features[:, i] for i, name in enumerate(EDGE_FEATURES)}
     assert f["confident"].sum() < 3 * 12   # fewer than MIN_SEEDS survivors per pair on average
-    assert f["has_model"].min() == 1.0     # yet every pair has a model
-    assert f["guided"].sum() > 0
+    trusted = [m for m in es.models.values() if m is not None]
+    assert len(trusted) >= 2 and all(m.trusted() for m in trusted)  # yet most pairs have a trusted model
+    assert f["has_model"].max() == 1.0 and f["guided"].sum() > 0
+
+
+def test_only_trusted_models_give_geometric_features_and_guided_candidates():
+    """Two views of a 3-D scene: with calibrated cameras an essential matrix is fitted and
+    trusted; asking for more inliers than there are seeds leaves the pair without a model,
+    its candidates without geometric credit and without guided ones."""
+    from gcn_match_ros.data import synthetic
+
+    problem = synthetic.random_scene_problem(synthetic.preset("easy", 2, "sift"), np.random.default_rng(3))
+    es = candidate_edges(problem)
+    model = es.models[(0, 1)]
+    assert model is not None and model.trusted() and model.essential
+    f = {name: es.features[:, i] for i, name in enumerate(EDGE_FEATURES)}
+    assert f["has_model"].min() == 1.0 and f["guided"].sum() > 0 and np.isfinite(es.res_px).all()
+    strict = candidate_edges(problem, EdgeConfig(min_inliers=10_000))
+    g = {name: strict.features[:, i] for i, name in enumerate(EDGE_FEATURES)}
+    assert strict.models == {(0, 1): None}
+    assert g["has_model"].max() == 0.0 and g["guided"].sum() == 0 and np.isinf(strict.res_px).all()
+    uncalibrated = candidate_edges(problem, EdgeConfig(essential=False)).models[(0, 1)]
+    assert uncalibrated is not None and not uncalibrated.essential

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gcn_match_ros import geometry
-from gcn_match_ros.edges.verify import MIN_SEEDS, PairModel, fit_pair, residuals
+from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
 from conftest import look_at
 
@@ -68,3 +68,62 @@ def test_residuals_are_symmetric_transfer_and_sampson_errors():
     assert np.all(np.isinf(missing_f)) and np.array_equal(only_h, res_h)
     missing_h, _ = residuals(PairModel(None, F_true), xa, xb)
     assert np.all(np.isinf(missing_h))
+
+
+def test_calibrated_cameras_give_an_essential_matrix_with_the_true_epipolar_geometry():
+    rng = np.random.default_rng(4)
+    xa, xb, F_true = _non_planar_pairs(rng)
+    model = fit_pair(xa, xb, K_a=K, K_b=K)
+    assert model is not None and model.essential and not model.planar
+    _, res_f = residuals(model, xa, xb)
+    assert res_f.max() < 1e-2
+    F, G = model.F / np.linalg.norm(model.F), F_true / np.linalg.norm(F_true)
+    np.testing.assert_allclose(F * np.sign(np.sum(F * G)), G, atol=1e-4)
+    assert model.inliers_f == len(xa)  # every seed is in front of both cameras
+
+
+def test_a_model_is_trusted_only_with_enough_inliers_making_enough_of_the_seeds():
+    rng = np.random.default_rng(5)
+    xa, xb, _ = _non_planar_pairs(rng, n=MIN_INLIERS + 5)
+    model = fit_pair(xa, xb)
+    assert model.trusted() and model.inliers == len(xa)
+    # 35 true pairs among 65 random ones: fitted (5-point, calibrated), but explaining a
+    # minority of its seeds
+    xa, xb, _ = _non_planar_pairs(rng, n=35)
+    drowned = fit_pair(np.r_[xa, rng.uniform(0, 640, (65, 2))], np.r_[xb, rng.uniform(0, 480, (65, 2))], K_a=K, K_b=K)
+    assert drowned is not None and 35 <= drowned.inliers < 40 and not drowned.trusted()
+    # random pairs only: a fundamental matrix always fits 7 of them, never trusted
+    random_model = fit_pair(rng.uniform(0, 640, (40, 2)), rng.uniform(0, 480, (40, 2)))
+    assert random_model is None or not random_model.trusted()
+    assert PairModel(None, None, seeds=20, inliers_f=MIN_INLIERS - 1).trusted() is False
+    assert PairModel(None, None, seeds=20, inliers_f=MIN_INLIERS).trusted() is True
+    assert PairModel(None, None, planar=True, seeds=100, inliers_h=39).trusted() is False  # 39 % of seeds
+    assert MIN_INLIER_RATIO == 0.4
+
+
+def test_agrees_uses_the_selected_model_and_its_tolerance():
+    rng = np.random.default_rng(6)
+    xa, xb, F_true = _non_planar_pairs(rng, n=10)
+    model = PairModel(H_TRUE, F_true, planar=False)
+    off = xb + np.array([0.0, EPIPOLAR_PX * 3])  # off the epipolar line (not along it)
+    assert model.agrees(xa, xb).all()
+    _, res = residuals(model, xa, off)
+    np.testing.assert_array_equal(model.agrees(xa, off), res <= EPIPOLAR_PX)
+    assert not model.agrees(xa, off).all()
+    planar = PairModel(H_TRUE, F_true, planar=True)
+    ya = rng.uniform(0, 640, (10, 2))
+    yb = geometry.transfer(H_TRUE, ya)
+    assert planar.agrees(ya, yb).all()
+    assert not planar.agrees(ya, yb + RANSAC_PX * 2).any()
+
+
+def test_agreement_tolerance_follows_the_keypoint_noise():
+    """3 sigma of the noise measured on the fit's inliers, within [AGREE_MIN_PX, EPIPOLAR_PX]."""
+    rng = np.random.default_rng(7)
+    xa, xb, _ = _non_planar_pairs(rng, n=80)
+    exact = fit_pair(xa, xb, K_a=K, K_b=K)
+    assert exact.epipolar_px == AGREE_MIN_PX
+    noisy = fit_pair(xa + rng.normal(0, 0.5, xa.shape), xb + rng.normal(0, 0.5, xb.shape), K_a=K, K_b=K)
+    assert AGREE_MIN_PX < noisy.epipolar_px <= EPIPOLAR_PX
+    very_noisy = fit_pair(xa + rng.normal(0, 2.0, xa.shape), xb + rng.normal(0, 2.0, xb.shape), K_a=K, K_b=K)
+    assert very_noisy.epipolar_px == EPIPOLAR_PX

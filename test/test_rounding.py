@@ -19,6 +19,22 @@ def test_greedy_tracks_never_puts_two_keypoints_of_one_view_together():
     assert np.all(below == -1)
 
 
+def test_greedy_tracks_asks_compatible_before_every_merge_with_the_members():
+    view = np.array([0, 1, 2, 3])
+    rows, cols, scores = np.array([0, 1, 2]), np.array([1, 2, 3]), np.array([0.9, 0.8, 0.7])
+    asked = []
+
+    def at_most_three(a, b):
+        asked.append((sorted(a), sorted(b)))
+        return len(a) + len(b) <= 3
+
+    track = greedy_tracks(4, view, rows, cols, scores, compatible=at_most_three)
+    assert asked == [([0], [1]), ([0, 1], [2]), ([0, 1, 2], [3])]
+    assert track[0] == track[1] == track[2] and track[3] == -1
+    np.testing.assert_array_equal(greedy_tracks(4, view, rows, cols, scores, compatible=lambda a, b: True),
+                                  greedy_tracks(4, view, rows, cols, scores))
+
+
 def test_relabel_and_pairs():
     np.testing.assert_array_equal(relabel_tracks([7, 7, 3, -1, 5, 5]), [0, 0, -1, -1, 1, 1])
     r, c = tracks_to_pairs(np.array([0, 1, 0, 0, -1]))

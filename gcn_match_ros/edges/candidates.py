@@ -4,23 +4,26 @@ For every pair of views (i, j) the candidates are
 
 - each keypoint's top-``k`` descriptor neighbours in the other view (both directions), and
 - optionally geometry-guided candidates: a pose-free two-view model (homography and
-  fundamental matrix, OpenCV USAC-MAGSAC, :mod:`.verify`) is fitted on the
-  confident pairs (mutual nearest neighbours passing Lowe's ratio 0.8); every keypoint
-  then also proposes the keypoint of the other view nearest to its homography transfer
+  fundamental or, with known intrinsics, essential matrix, OpenCV USAC-MAGSAC,
+  :mod:`.verify`) is fitted on the confident pairs (mutual nearest neighbours passing
+  Lowe's ratio 0.8); when the model is trusted (:meth:`.verify.PairModel.trusted`) every
+  keypoint also proposes the keypoint of the other view nearest to its homography transfer
   and the descriptor-best keypoint within ``guide_px`` of its epipolar line.
 
 Per candidate edge (a, b) the features (:data:`EDGE_FEATURES`) are: descriptor cosine,
 Lowe ratio from each side, rank from each side, mutual-NN flag, the confident-edge flag,
 triangle support (fraction of third views k with some c such that a–c and c–b are both
 candidates; and the same on the confident edges only), and the geometric residuals (in
-pixels, squashed) of the edge under the fitted H and F, plus whether a model was found.
-Everything here is computed from the problem's keypoints and descriptors only, in
-training and at test time alike.
+pixels, squashed) of the edge under the trusted H or F, plus whether there is one (an
+untrusted model gives no geometric credit). The trusted models come back with the edges
+(:attr:`EdgeSet.models`) for the checks of :mod:`.consistency`. Everything here is computed
+from the problem's keypoints and descriptors (and intrinsics, when known) only, in training
+and at test time alike.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -33,7 +36,7 @@ from ..geometry import epipolar_distance_matrix, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
 from ..timing import stage
-from .verify import MIN_SEEDS, PairModel, fit_pair, residuals
+from .verify import EPIPOLAR_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "EDGE_FEATURES", "RANK_CAP"]
 
@@ -48,7 +51,11 @@ class EdgeConfig(JsonConfig):
     """k: descriptor candidates per keypoint and view; geometry: fit H/F per view pair and
     add geometric features; guided: add geometry-guided candidates; guide_px: their
     tolerance; ratio: Lowe ratio of the confident seed pairs; normalization: of the
-    descriptors before the cosine (:data:`gcn_match_ros.descriptors.NORMALIZATIONS`)."""
+    descriptors before the cosine (:data:`gcn_match_ros.descriptors.NORMALIZATIONS`);
+    min_inliers, min_inlier_ratio: when a fitted model is trusted
+    (:meth:`.verify.PairModel.trusted`; 0, 0: any fitted model, the classic RANSAC
+    baseline); essential: fit an essential matrix where the problem has intrinsics;
+    epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels)."""
 
     k: int = 4
     geometry: bool = True
@@ -56,23 +63,33 @@ class EdgeConfig(JsonConfig):
     guide_px: float = 3.0
     ratio: float = 0.8
     normalization: str = "rootsift"
+    min_inliers: int = MIN_INLIERS
+    min_inlier_ratio: float = MIN_INLIER_RATIO
+    essential: bool = True
+    epipolar_px: float = EPIPOLAR_PX
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
 
 
+ViewPair = Tuple[int, int]
+
+
 @dataclasses.dataclass
 class EdgeSet:
     """Undirected candidate edges rows < cols (global indices) and their (M, F) features.
 
-    ``res_px`` (M,) is the smaller geometric residual in pixels (inf without a model)."""
+    ``res_px`` (M,) is the residual in pixels under the view pair's trusted model (inf without
+    one). ``models``: every view pair (i, j), i < j, whose views were compared -> its trusted
+    model (:meth:`.verify.PairModel.selected`), or None when it has none."""
 
     rows: np.ndarray
     cols: np.ndarray
     features: np.ndarray
     res_px: np.ndarray
     confident: np.ndarray
+    models: Dict[ViewPair, Optional[PairModel]] = dataclasses.field(default_factory=dict)
 
 
 def _squash(d: np.ndarray) -> np.ndarray:
@@ -115,19 +132,25 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
     V = problem.n_views
     kp = problem.keypoints.astype(np.float64)
     n = problem.n_keypoints
+    calibrated = config.essential and problem.K is not None
     parts: List[PairCandidates] = []
     starts = []
+    models: Dict[ViewPair, Optional[PairModel]] = {}
     for i in range(V):
         a0, a1 = int(offs[i]), int(offs[i + 1])
         for j in range(i + 1, V):
             b0, b1 = int(offs[j]), int(offs[j + 1])
             if a1 - a0 < 2 or b1 - b0 < 2:
                 continue
-            parts.append(_pair_edges(similarity.block(i, j, config.normalization), kp[a0:a1], kp[b0:b1], config))
+            intrinsics = (problem.K[i], problem.K[j]) if calibrated else (None, None)
+            part, models[(i, j)] = _pair_edges(similarity.block(i, j, config.normalization), kp[a0:a1], kp[b0:b1],
+                                               config, *intrinsics)
+            parts.append(part)
             starts.append((a0, b0))
     if not parts:
         z = np.zeros(0, np.int64)
-        return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool))
+        return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool),
+                       models)
 
     def cat(field: str) -> np.ndarray:
         return np.concatenate([getattr(p, field) for p in parts])
@@ -147,11 +170,14 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
     rmin = np.minimum(rh, rf)
     feats = np.stack([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf,
                       tri_all, tri_conf, _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided], axis=1)
-    return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf)
+    return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf, models)
 
 
-def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig) -> PairCandidates:
-    """Candidates of one view pair (a, b) and their per-pair features; ``sim_t`` (n_a, n_b) cosines."""
+def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig,
+                K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None
+                ) -> Tuple[PairCandidates, Optional[PairModel]]:
+    """Candidates of one view pair (a, b), their per-pair features and the pair's trusted model
+    (None without one); ``sim_t`` (n_a, n_b) cosines, K_a, K_b intrinsics (None: uncalibrated)."""
     na, nb = sim_t.shape
     sim = sim_t.numpy()
     k = min(config.k, na, nb)
@@ -179,8 +205,9 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
             seed_a = np.flatnonzero(mutual_ab)
             seed_b = nn_r[seed_a]
         with stage("geometry"):
-            model = fit_pair(xa[seed_a], xb[seed_b])
-        model = model.selected() if model is not None else None
+            model = fit_pair(xa[seed_a], xb[seed_b], K_a=K_a, K_b=K_b, epipolar_px=config.epipolar_px)
+        trusted = model is not None and model.trusted(config.min_inliers, config.min_inlier_ratio)
+        model = model.selected() if trusted else None
     guided = np.zeros(ea.shape[0], bool)
     if config.guided and model is not None:
         with stage("geometry"):
@@ -208,7 +235,7 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
         rh = rf = np.full(ea.shape[0], np.inf)
         kind = 0.0
     return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
-                          np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2)
+                          np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2), model
 
 
 def _dist(c: np.ndarray) -> np.ndarray:

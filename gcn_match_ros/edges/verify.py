@@ -1,9 +1,17 @@
-"""Pose-free two-view geometric verification (OpenCV USAC-MAGSAC).
+"""Pose-free two-view geometric verification (OpenCV USAC-MAGSAC), and when to trust it.
 
-Per view pair a homography H and a fundamental matrix F are fitted on seed pairs
-(pixel coordinates); residuals of any pair are then measured in pixels:
-symmetric transfer error for H, Sampson distance for F. Used at test time by the
-``nn-ransac`` baseline and by the learned edge scorer's features; never uses poses.
+Per view pair a homography H and an epipolar model are fitted on seed pairs: a fundamental
+matrix F from pixels, or — when both cameras' intrinsics are known (a calibrated robot's
+``camera_info``) — an essential matrix E from calibrated points (5 degrees of freedom
+instead of 7, points behind either camera rejected), turned into F = K_b⁻ᵀ E K_a⁻¹ so every
+residual stays in pixels: symmetric transfer error for H, Sampson distance for F.
+
+A fitted model is not yet a *trusted* one. A model fitted to a view pair that shares no
+scene (cameras pointing different ways) or to a repetitive facade still finds a handful of
+"inliers": 7 seeds always fit a fundamental matrix exactly. :meth:`PairModel.trusted` asks
+for at least ``min_inliers`` inliers making at least ``min_inlier_ratio`` of the seeds. Only
+trusted models guide candidates, give geometric features and check tracks
+(:mod:`.candidates`, :mod:`.consistency`). Never uses poses.
 """
 from __future__ import annotations
 
@@ -13,55 +21,142 @@ from typing import Optional, Tuple
 import cv2
 import numpy as np
 
-from ..geometry import sampson_distance, transfer
+from ..geometry import sampson_distance, transfer, unproject
 
-__all__ = ["PairModel", "fit_pair", "residuals", "MIN_SEEDS", "RANSAC_PX", "PLANAR_RATIO"]
+__all__ = ["PairModel", "fit_pair", "residuals", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "PLANAR_RATIO",
+           "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX"]
 
 MIN_SEEDS = 12
-RANSAC_PX = 3.0
-PLANAR_RATIO = 0.8  # H inliers >= this x F inliers: the pair is treated as planar
+RANSAC_PX = 3.0         # inlier threshold of the homography (symmetric transfer error)
+EPIPOLAR_PX = 2.0       # inlier threshold of the epipolar model's fit (Sampson distance)
+#: A pair agrees with an epipolar model within 3 sigma of the keypoint noise, sigma estimated
+#: from the fit's inliers (median Sampson distance / 0.674, as for a half-normal), clipped to
+#: [AGREE_MIN_PX, the fit's threshold]: ~1 px for SIFT on real images (well inside the 2 px
+#: a match may be off the true lines), up to 2 px for noisier keypoints.
+AGREE_SIGMAS, AGREE_MIN_PX = 3.0, 1.0
+PLANAR_RATIO = 0.8      # H inliers >= this x F inliers: the pair is treated as planar
+MIN_INLIERS = 15        # a trusted model explains at least this many seeds ...
+MIN_INLIER_RATIO = 0.4  # ... making at least this share of them
 
 
 @dataclasses.dataclass
 class PairModel:
-    """H and/or F; ``planar``: the homography explains the seeds about as well as F
-    (ORB-SLAM-style model selection), then only H is used for residuals and guidance."""
+    """H and/or F of one view pair and their support.
+
+    Attributes:
+        planar: the homography explains the seeds about as well as F (ORB-SLAM-style model
+            selection); then only H is used for residuals and guidance.
+        seeds: the pairs the models were fitted on; inliers_h, inliers_f: how many of them
+            each model explains (0 without the model).
+        essential: F comes from an essential matrix (both cameras calibrated).
+        px: the inlier threshold H was fitted with; epipolar_px: the Sampson distance within
+            which a pair agrees with F (see :data:`AGREE_SIGMAS`); :meth:`agrees`.
+    """
+
     H: Optional[np.ndarray]
     F: Optional[np.ndarray]
     planar: bool = False
+    seeds: int = 0
+    inliers_h: int = 0
+    inliers_f: int = 0
+    essential: bool = False
+    px: float = RANSAC_PX
+    epipolar_px: float = EPIPOLAR_PX
+
+    @property
+    def inliers(self) -> int:
+        """Seeds explained by the selected model (H when planar, else F)."""
+        return self.inliers_h if self.planar else self.inliers_f
+
+    def trusted(self, min_inliers: int = MIN_INLIERS, min_inlier_ratio: float = MIN_INLIER_RATIO) -> bool:
+        """Whether the selected model has the support to be believed (module docstring)."""
+        return self.inliers >= min_inliers and self.inliers >= min_inlier_ratio * self.seeds
 
     def selected(self) -> "PairModel":
-        return PairModel(self.H, None, True) if self.planar else PairModel(None, self.F, False)
+        """This model with only the selected H or F kept."""
+        keep_h, keep_f = (self.H, None) if self.planar else (None, self.F)
+        return dataclasses.replace(self, H=keep_h, F=keep_f)
+
+    def agrees(self, xa: np.ndarray, xb: np.ndarray, slack: float = 1.0) -> np.ndarray:
+        """(M,) bool: each pair xa[m] <-> xb[m] is an inlier of the selected model: its residual
+        within ``slack`` x the model's tolerance (``px`` for H, ``epipolar_px`` for F)."""
+        rh, rf = residuals(self.selected(), xa, xb)
+        return (rh <= slack * self.px) if self.planar else (rf <= slack * self.epipolar_px)
 
 
-def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0) -> Optional[PairModel]:
-    """H and F (each None if it fails or is poorly supported) from seed pairs xa[i] <-> xb[i]."""
-    if xa.shape[0] < MIN_SEEDS:
+def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0,
+             K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
+             epipolar_px: float = EPIPOLAR_PX) -> Optional[PairModel]:
+    """H and F (each None if it fails) from seed pairs xa[i] <-> xb[i] (pixels); None when
+    neither fits. With both intrinsics K_a, K_b (3, 3) the epipolar model is an essential
+    matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F.
+
+    Shapes: xa, xb (S, 2).
+    """
+    n = xa.shape[0]
+    if n < MIN_SEEDS:
         return None
     a = np.ascontiguousarray(xa, np.float64)
     b = np.ascontiguousarray(xb, np.float64)
     cv2.setRNGSeed(seed)
-    H = F = None
+    H, nh = None, 0
     try:
         H, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=2000, confidence=0.999)
         if H is None or mh is None or int(mh.sum()) < 8 or abs(np.linalg.det(H)) < 1e-8:
             H = None
+        else:
+            nh = int(mh.sum())
     except cv2.error:
         H = None
-    try:
-        F, mf = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, px / 2, 0.999, 2000)
-        if F is None or F.shape != (3, 3) or mf is None or int(mf.sum()) < 12:
-            F = None
-    except cv2.error:
-        F = None
+    calibrated = K_a is not None and K_b is not None
+    F, nf = (_fit_essential(a, b, epipolar_px, K_a, K_b, seed) if calibrated
+             else _fit_fundamental(a, b, epipolar_px, seed))
     if H is None and F is None:
         return None
-    nh = int(mh.sum()) if H is not None else 0
-    nf = int(mf.sum()) if F is not None else 0
     planar = H is not None and (F is None or nh >= PLANAR_RATIO * nf)
     if not planar and F is None:
         return None
-    return PairModel(H, F, planar)
+    agree_px = epipolar_px
+    if F is not None:
+        inlier_res = sampson_distance(F, a, b)
+        inlier_res = inlier_res[inlier_res <= epipolar_px]
+        sigma = float(np.median(inlier_res)) / 0.674 if inlier_res.size else 0.0
+        agree_px = float(np.clip(AGREE_SIGMAS * sigma, min(AGREE_MIN_PX, epipolar_px), epipolar_px))
+    return PairModel(H, F, planar, seeds=n, inliers_h=nh, inliers_f=nf, essential=calibrated and F is not None,
+                     px=px, epipolar_px=agree_px)
+
+
+def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int) -> Tuple[Optional[np.ndarray], int]:
+    cv2.setRNGSeed(seed)
+    try:
+        F, mf = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, px, 0.999, 2000)
+    except cv2.error:
+        return None, 0
+    if F is None or F.shape != (3, 3) or mf is None or int(mf.sum()) < MIN_SEEDS:
+        return None, 0
+    return F, int(mf.sum())
+
+
+def _fit_essential(a: np.ndarray, b: np.ndarray, px: float, K_a: np.ndarray, K_b: np.ndarray,
+                   seed: int) -> Tuple[Optional[np.ndarray], int]:
+    """F = K_b⁻ᵀ E K_a⁻¹ from the 5-point essential matrix of calibrated points; inliers are
+    the seeds within ``px`` (pixels, via the mean focal length) that triangulate in front of
+    both cameras."""
+    ua, ub = unproject(K_a, a)[:, :2], unproject(K_b, b)[:, :2]
+    focal = 0.25 * (K_a[0, 0] + K_a[1, 1] + K_b[0, 0] + K_b[1, 1])
+    cv2.setRNGSeed(seed)
+    try:
+        E, me = cv2.findEssentialMat(ua, ub, np.eye(3), cv2.USAC_MAGSAC, 0.999, px / focal)
+        if E is None or E.shape != (3, 3) or me is None:
+            return None, 0
+        _, _, _, front = cv2.recoverPose(E, ua, ub, np.eye(3), mask=me.copy())
+    except cv2.error:
+        return None, 0
+    inliers = int((front.ravel() > 0).sum())
+    if inliers < MIN_SEEDS:
+        return None, 0
+    F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
+    return F / np.linalg.norm(F), inliers
 
 
 def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,12 @@
-"""The learned matcher: a trained GCN embeds the keypoints; EEᵀ scores the pairs.
+"""The learned matcher: a trained GCN embeds the keypoints; its edge head (or EEᵀ) scores the pairs.
 
 The checkpoint carries the graph and feature settings the network was trained with,
-so the input is rebuilt exactly as in training. Scores are computed one view-pair
-block at a time (never N×N) and only each keypoint's best candidates per view are
-kept, then rounded with the shared greedy conflict-free merging.
+so the input is rebuilt exactly as in training. With an edge head (the shipped models) the
+head scores the candidate edges, and the matches and tracks are then checked against the
+window's trusted pose-free two-view geometry (:mod:`gcn_match_ros.edges.consistency`:
+pairs that disagree are dropped, tracks are merged only when every two members agree).
+Without one, EEᵀ is computed one view-pair block at a time (never N×N) and each keypoint's
+best candidates per view are kept. Tracks come from the shared greedy conflict-free merging.
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import torch
 
 from ..descriptors import describe_descriptor_kind, descriptor_kind
 from ..edges.candidates import candidate_edges
+from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.verify import MIN_SEEDS
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
@@ -58,6 +62,10 @@ class GCNSolverConfig(SolverConfig):
             solver's matches (mutual nearest neighbours passing the ratio test, scored by
             cosine). The head never saw such pairs in training and scores every edge of them
             low, so without this a low-texture window matches nothing. False: the head alone.
+        verify: with an edge-scoring model, keep only matches and tracks that agree with the
+            window's trusted two-view geometry (:mod:`gcn_match_ros.edges.consistency`).
+        unverified_threshold: the score a pair needs on a view pair with enough keypoints but
+            no trusted model (views that most likely share no scene).
     """
 
     graph: str = "checkpoint"
@@ -67,6 +75,8 @@ class GCNSolverConfig(SolverConfig):
     floor: float = 0.01
     device: str = "cpu"
     descriptor_fallback: bool = True
+    verify: bool = True
+    unverified_threshold: float = UNVERIFIED_THRESHOLD
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -75,6 +85,8 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
+        if not 0.0 <= self.unverified_threshold <= 1.0:
+            raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
 
 
 @functools.lru_cache(maxsize=4)
@@ -164,9 +176,18 @@ class GCNSolver(Solver):
                 if self.config.descriptor_fallback and edge_config_of(self.model).geometry:
                     with stage("candidates"):
                         soft = _with_descriptor_matches(problem, soft, similarity)
+                if self.config.verify and edge_config_of(self.model).geometry:
+                    return self._verified(problem, soft, WindowGeometry(problem, es.models,
+                                                                        self.config.unverified_threshold))
                 return soft, None
         return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                           top_k=self.config.top_k), None
+
+    def _verified(self, problem: Problem, soft: SoftMatches, geometry: WindowGeometry):
+        """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
+        with stage("rounding"):
+            keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold)
+        return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
 def _with_descriptor_matches(problem: Problem, soft: SoftMatches, similarity: DescriptorSimilarity) -> SoftMatches:

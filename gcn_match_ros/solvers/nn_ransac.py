@@ -1,12 +1,17 @@
 """Honest baseline for test-time geometry: mutual NN + ratio 0.8, verified per view pair.
 
-The same pose-free two-view verification as the learned ``gcn`` solver's features
-(:mod:`gcn_match_ros.edges.verify`: USAC-MAGSAC homography and fundamental matrix on the confident
-pairs, H chosen when it explains the seeds about as well as F); a nearest-neighbour pair
-is kept when its residual under the selected model is below ``px`` pixels (pairs of a view
-pair where no model could be fitted are kept). ``guided=true`` also adds, like the
-learned solver's candidates, the geometry-guided pairs (nearest keypoint to the H transfer /
-descriptor-best within ``px`` of the epipolar line), scored by their cosine.
+Plain ``nn-ransac`` is the classic baseline: per view pair a USAC-MAGSAC homography and
+fundamental matrix (1.5 px) on the confident pairs (:mod:`gcn_match_ros.edges.verify`, H
+chosen when it explains the seeds about as well as F, any fitted model believed); a
+nearest-neighbour pair is kept when its residual under the selected model is below ``px``
+pixels, and pairs of a view pair where no model could be fitted are kept.
+
+``guided=true`` is the learned solver's geometry without the network: its candidate
+generation (trusted models only, an essential matrix where intrinsics are known, and the
+geometry-guided pairs — nearest keypoint to the H transfer / descriptor-best near the epipolar
+line — scored by their cosine) and its checks (:mod:`gcn_match_ros.edges.consistency`: pairs
+that disagree with a trusted model dropped, none on view pairs without one, tracks merged only
+when every two members agree).
 """
 from __future__ import annotations
 
@@ -14,6 +19,8 @@ import dataclasses
 from typing import Optional
 
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
+from ..edges.consistency import WindowGeometry, verified_tracks
+from ..edges.verify import RANSAC_PX
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
@@ -42,12 +49,19 @@ class NNRansacSolver(Solver):
     needs_graph = False  # the candidate edges hold the mutual nearest neighbours already
 
     def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity):
-        es = candidate_edges(problem, EdgeConfig(k=1, guided=self.config.guided, guide_px=self.config.px,
-                                                 normalization="l2"), similarity)
-        f = es.features
-        ok_geo = (f[:, _F["has_model"]] == 0) | (es.res_px < self.config.px)
-        base = f[:, _F["confident"]] > 0
         if self.config.guided:
-            base = base | (f[:, _F["guided"]] > 0)
-        keep = base & ok_geo
+            es = candidate_edges(problem, EdgeConfig(k=1, guided=True, guide_px=self.config.px, normalization="l2"),
+                                 similarity)
+            f = es.features
+            pick = (f[:, _F["confident"]] > 0) | (f[:, _F["guided"]] > 0)
+            rows, cols, scores = es.rows[pick], es.cols[pick], f[pick, _F["cosine"]]
+            # scores are cosines: no pair of a view pair without a trusted model is kept
+            keep, track = verified_tracks(WindowGeometry(problem, es.models, unverified_threshold=1.0),
+                                          rows, cols, scores, self.threshold)
+            return SoftMatches(rows[keep], cols[keep], scores[keep]), track
+        es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
+                                                 min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2),
+                             similarity)
+        f = es.features
+        keep = (f[:, _F["confident"]] > 0) & ((f[:, _F["has_model"]] == 0) | (es.res_px < self.config.px))
         return SoftMatches(es.rows[keep], es.cols[keep], f[keep, _F["cosine"]]), None

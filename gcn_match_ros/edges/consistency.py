@@ -1,0 +1,157 @@
+"""Matches and tracks that agree with a window's trusted two-view geometry (pose-free).
+
+A pair of views is, for the purpose of checking matches between them:
+
+- **verified** — it has a trusted model (:meth:`.verify.PairModel.trusted`, from
+  :func:`.candidates.candidate_edges`): a pair of its keypoints is kept only if it agrees with
+  the model (:meth:`.verify.PairModel.agrees`: an inlier of it);
+- **unverifiable** — one of its views has fewer keypoints than a model needs seeds
+  (:data:`.verify.MIN_SEEDS`, e.g. a low-texture view): its pairs are kept as scored;
+- **unverified** — enough keypoints, yet no trusted model: most often two views that share
+  no scene (cameras pointing different ways), where every match is wrong. Only pairs scored
+  at least ``unverified_threshold`` are kept.
+
+Tracks must agree *as a whole* (:class:`TrackCheck`): greedy merging joins two tracks through
+one good pair, which can chain x_a–y_b and y_b–z_c into a track whose x_a, z_c were never
+compared and do not match. Before a merge every two members in a verified view pair must
+agree with its model; two members in an unverified view pair must be a kept pair themselves,
+or be vouched for by :data:`MIN_WITNESSES` members in views verified against both of theirs
+(each keypoint then lies where two epipolar lines cross: a transfer check without a direct
+model). This is the cycle consistency the method is about, checked against geometry. Two
+members joined only through a third were never matched directly: their pair carries the
+localisation error of two links, so it is checked at :data:`CHAIN_SLACK` x the model's
+tolerance (at 1x, Oxford graf lost a quarter of its true 4-view tracks).
+"""
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..problem import Problem
+from ..rounding import greedy_tracks
+from .verify import MIN_SEEDS, PairModel
+
+__all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
+
+#: The score a pair of an unverified view pair needs to be kept (see the module docstring).
+UNVERIFIED_THRESHOLD = 0.9
+#: Tolerance factor for two track members that were not matched directly (module docstring).
+CHAIN_SLACK = 2.0
+#: Members verified against both views of an unverified pair needed to vouch for it (TrackCheck).
+MIN_WITNESSES = 2
+
+ViewPair = Tuple[int, int]
+
+
+class WindowGeometry:
+    """The trusted two-view models of one window and the checks they allow.
+
+    Args:
+        problem: the window.
+        models: (i, j), i < j -> trusted model or None (:attr:`.candidates.EdgeSet.models`);
+            view pairs not listed have none.
+        unverified_threshold: the score a pair of an unverified view pair needs.
+    """
+
+    def __init__(self, problem: Problem, models: Dict[ViewPair, Optional[PairModel]],
+                 unverified_threshold: float = UNVERIFIED_THRESHOLD) -> None:
+        self.keypoints = problem.keypoints.astype(np.float64)
+        self.view_index = problem.view_index
+        self.models = {k: m for k, m in models.items() if m is not None}
+        self.small = problem.view_sizes < MIN_SEEDS
+        self.unverified_threshold = float(unverified_threshold)
+
+    def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
+        """Whether each pair may be matched on geometric grounds alone: it agrees with its
+        verified view pair's model (within ``slack`` x its tolerance), or its view pair is
+        unverifiable. Pairs of unverified view pairs get False (their score decides: :meth:`keep`).
+
+        Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
+        """
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        va, vb = self.view_index[rows], self.view_index[cols]
+        swap = va > vb
+        rows, cols = np.where(swap, cols, rows), np.where(swap, rows, cols)
+        va, vb = np.minimum(va, vb), np.maximum(va, vb)
+        out = self.small[va] | self.small[vb]
+        for (a, b), model in self.models.items():
+            m = (va == a) & (vb == b)
+            if m.any():
+                out[m] = model.agrees(self.keypoints[rows[m]], self.keypoints[cols[m]], slack)
+        return out
+
+    def keep(self, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray) -> np.ndarray:
+        """(M,) bool: the pairs a solver may publish (module docstring)."""
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        va, vb = self.view_index[rows], self.view_index[cols]
+        verified = np.array([(min(a, b), max(a, b)) in self.models for a, b in zip(va.tolist(), vb.tolist())],
+                            bool)
+        unverified = ~verified & ~(self.small[va] | self.small[vb])
+        return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
+
+
+class TrackCheck:
+    """The ``compatible`` test of :func:`gcn_match_ros.rounding.greedy_tracks` that keeps every
+    track consistent as a whole (module docstring).
+
+    Args:
+        geometry: the window's models.
+        rows, cols: (M,) the kept pairs that may be merged (each already passed
+            :meth:`WindowGeometry.keep`): the only pairs of unverified view pairs a track may hold.
+    """
+
+    def __init__(self, geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray) -> None:
+        self.geometry = geometry
+        n = geometry.view_index.shape[0]
+        self._n = n
+        self._kept = set((np.minimum(rows, cols).astype(np.int64) * n + np.maximum(rows, cols)).tolist())
+        self.refused = 0
+
+    def __call__(self, members_a: List[int], members_b: List[int]) -> bool:
+        n = self._n
+        unchecked = [(min(x, y), max(x, y)) for x in members_a for y in members_b
+                     if min(x, y) * n + max(x, y) not in self._kept]
+        if not unchecked:
+            return True
+        rows, cols = np.array(unchecked, np.int64).T
+        ok = self.geometry.agree(rows, cols, CHAIN_SLACK)
+        if not ok.all():
+            # agree() is False on unverified view pairs: there two witnesses must vouch
+            ok |= self._witnessed(rows, cols, members_a + members_b)
+        merged = bool(ok.all())
+        self.refused += not merged
+        return merged
+
+    def _witnessed(self, rows: np.ndarray, cols: np.ndarray, members: List[int]) -> np.ndarray:
+        """(M,) bool: pair m lies in an unverified view pair and at least :data:`MIN_WITNESSES`
+        other members sit in views verified against both of its views. Every member's pairs
+        in verified view pairs are checked (now or at an earlier merge), so two such witnesses
+        pin each keypoint to the intersection of two epipolar lines: a transfer check that
+        needs no direct model."""
+        view = self.geometry.view_index
+        verified = self.geometry.models
+        member_views = view[np.asarray(members, np.int64)].tolist()
+        out = np.zeros(rows.shape[0], bool)
+        for m, (a, b) in enumerate(zip(view[rows].tolist(), view[cols].tolist())):
+            if (min(a, b), max(a, b)) in verified:
+                continue
+            witnesses = sum(1 for w in member_views if w not in (a, b)
+                            and (min(a, w), max(a, w)) in verified and (min(b, w), max(b, w)) in verified)
+            out[m] = witnesses >= MIN_WITNESSES
+        return out
+
+
+def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
+                    threshold: float) -> Tuple[np.ndarray, np.ndarray]:
+    """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
+    ``threshold`` with every two members agreeing (:class:`TrackCheck`).
+
+    Shapes: rows, cols, scores (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
+    """
+    keep = geometry.keep(rows, cols, scores)
+    merged = keep & (np.asarray(scores) >= threshold)
+    check = TrackCheck(geometry, np.asarray(rows)[merged], np.asarray(cols)[merged])
+    track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, np.asarray(rows)[keep],
+                          np.asarray(cols)[keep], np.asarray(scores)[keep], threshold, compatible=check)
+    return keep, track

@@ -1,0 +1,119 @@
+"""Tests of gcn_match_ros.edges.consistency: which pairs a window's trusted geometry keeps, and
+tracks that must agree as a whole."""
+import numpy as np
+
+from gcn_match_ros.edges.consistency import CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry
+from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel
+from gcn_match_ros.problem import Problem
+from gcn_match_ros.rounding import greedy_tracks
+
+
+def _shift(dx, dy):
+    """A trusted planar model: the homography of a pure image translation."""
+    return PairModel(np.array([[1.0, 0, dx], [0, 1, dy], [0, 0, 1]]), None, planar=True, seeds=40, inliers_h=40)
+
+
+def _window(sizes=(20, 20, 20), seed=0):
+    """Views whose keypoint k are the same point, view v shifted by (10 v, 5 v) pixels."""
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(50, 400, (max(sizes), 2))
+    kps = [base[:n] + np.array([10.0 * v, 5.0 * v]) for v, n in enumerate(sizes)]
+    return Problem(view_offsets=np.r_[0, np.cumsum(sizes)], keypoints=np.concatenate(kps),
+                   descriptors=rng.normal(size=(sum(sizes), 8)))
+
+
+def test_keep_follows_the_view_pair_status():
+    p = _window()
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (0, 2): None, (1, 2): _shift(10, 5)})
+    o = p.view_offsets
+    rows = np.array([o[0] + 3, o[0] + 3, o[0] + 3, o[0] + 4, o[1] + 7])
+    cols = np.array([o[1] + 3, o[1] + 4, o[2] + 3, o[2] + 9, o[2] + 7])
+    scores = np.array([0.3, 0.9, UNVERIFIED_THRESHOLD - 0.01, UNVERIFIED_THRESHOLD, 0.5])
+    # verified: kept when the pair agrees (whatever its score); unverified: kept on score alone
+    np.testing.assert_array_equal(geometry.keep(rows, cols, scores), [True, False, False, True, True])
+    np.testing.assert_array_equal(geometry.agree(rows, cols), [True, False, False, False, True])
+    # either order of a pair
+    np.testing.assert_array_equal(geometry.keep(cols, rows, scores), geometry.keep(rows, cols, scores))
+
+
+def test_pairs_of_a_view_too_small_to_verify_are_kept_as_scored():
+    p = _window(sizes=(20, MIN_SEEDS - 1, 20))
+    geometry = WindowGeometry(p, {(0, 2): _shift(20, 10)})
+    o = p.view_offsets
+    rows, cols = np.array([o[0] + 1, o[1] + 2]), np.array([o[1] + 5, o[2] + 2])
+    assert geometry.keep(rows, cols, np.array([0.2, 0.2])).all()
+    assert geometry.agree(rows, cols).all()
+
+
+def test_a_chain_of_agreeing_links_is_refused_when_its_ends_disagree():
+    p = _window()
+    o = p.view_offsets
+    x, y, z = o[0] + 2, o[1] + 2, o[2] + 2
+    # links x-y and y-z agree with their models; the model of (0, 2) puts z 2 x CHAIN_SLACK x px away
+    wrong = _shift(20 + 2 * CHAIN_SLACK * RANSAC_PX, 10)
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (1, 2): _shift(10, 5), (0, 2): wrong})
+    rows, cols, scores = np.array([x, y]), np.array([y, z]), np.array([0.9, 0.8])
+    check = TrackCheck(geometry, rows, cols)
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5, compatible=check)
+    assert track[x] == track[y] >= 0 and track[z] == -1 and check.refused == 1
+    # with a consistent model of (0, 2) the three form one track
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (1, 2): _shift(10, 5), (0, 2): _shift(20, 10)})
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(geometry, rows, cols))
+    assert track[x] == track[y] == track[z] >= 0
+
+
+def test_an_unverified_view_pair_shares_a_track_only_through_a_kept_pair():
+    p = _window()
+    o = p.view_offsets
+    x, y, z = o[0] + 2, o[1] + 2, o[2] + 2
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (1, 2): _shift(10, 5), (0, 2): None})
+    rows, cols, scores = np.array([x, y]), np.array([y, z]), np.array([0.9, 0.8])
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(geometry, rows, cols))
+    assert track[z] == -1  # x and z (views 0, 2) were never a kept pair
+    rows, cols, scores = np.array([x, y, x]), np.array([y, z, z]), np.array([0.9, 0.8, 0.95])
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(geometry, rows, cols))
+    assert track[x] == track[y] == track[z] >= 0
+
+
+def test_members_joined_through_a_third_get_the_chain_slack():
+    p = _window()
+    o = p.view_offsets
+    x, y, z = o[0] + 2, o[1] + 2, o[2] + 2
+    # (0, 2)'s model is off by 1.5 px: x-z fails as a direct pair, passes as a chained one
+    off = _shift(20 + 1.5 * RANSAC_PX, 10)
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (1, 2): _shift(10, 5), (0, 2): off})
+    assert not geometry.agree([x], [z])[0] and geometry.agree([x], [z], CHAIN_SLACK)[0]
+    rows, cols, scores = np.array([x, y]), np.array([y, z]), np.array([0.9, 0.8])
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(geometry, rows, cols))
+    assert track[x] == track[y] == track[z] >= 0
+
+
+def test_two_witnesses_vouch_for_an_unverified_view_pair():
+    p = _window(sizes=(20, 20, 20, 20))
+    o = p.view_offsets
+    w, x, y, z = (o[v] + 2 for v in range(4))
+    models = {(a, b): _shift(10 * (b - a), 5 * (b - a)) for a in range(4) for b in range(a + 1, 4)}
+    models[(0, 3)] = None  # e.g. too little overlap for a trusted model of its own
+    geometry = WindowGeometry(p, models)
+    # a chain through views 1 and 2: both verified against 0 and 3, so w-z is vouched for
+    rows, cols, scores = np.array([w, x, y]), np.array([x, y, z]), np.array([0.9, 0.8, 0.7])
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(geometry, rows, cols))
+    assert len({track[w], track[x], track[y], track[z]}) == 1 and track[w] >= 0
+    # one witness is not enough: without view 2 in the track, z stays out of w's track
+    rows, cols, scores = np.array([w, x]), np.array([x, z]), np.array([0.9, 0.8])
+    check = TrackCheck(geometry, rows, cols)
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5, compatible=check)
+    assert track[w] == track[x] >= 0 and track[z] == -1 and check.refused == 1
+    # a witness whose own pairs disagree does not vouch: y shifted off view 3's model
+    kp = p.keypoints.copy()
+    kp[y] += 4 * CHAIN_SLACK * RANSAC_PX
+    bad = WindowGeometry(Problem(view_offsets=p.view_offsets, keypoints=kp, descriptors=p.descriptors), models)
+    rows, cols, scores = np.array([w, x, y]), np.array([x, y, z]), np.array([0.9, 0.8, 0.7])
+    track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
+                          compatible=TrackCheck(bad, rows, cols))
+    assert not (track[w] == track[x] == track[y] == track[z])
