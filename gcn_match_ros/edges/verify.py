@@ -1,4 +1,4 @@
-"""Pose-free two-view geometric verification (OpenCV USAC-MAGSAC), and when to trust it.
+"""Pose-free two-view geometric verification (OpenCV USAC), and when to trust it.
 
 Per view pair a homography H and an epipolar model are fitted on seed pairs: a fundamental
 matrix F from pixels, or — when both cameras' intrinsics are known (a calibrated robot's
@@ -37,6 +37,13 @@ AGREE_SIGMAS, AGREE_MIN_PX = 3.0, 1.0
 PLANAR_RATIO = 0.8      # H inliers >= this x F inliers: the pair is treated as planar
 MIN_INLIERS = 15        # a trusted model explains at least this many seeds ...
 MIN_INLIER_RATIO = 0.4  # ... making at least this share of them
+#: OpenCV's USAC with local optimisation for F and E: ~5x faster than USAC_MAGSAC on our seeds
+#: (0.7 vs 3.4 ms per essential matrix) and more inliers at the same threshold, so more view
+#: pairs are trusted (benchmarks/results/stage_breakdown.md, geometric_eval.md).
+EPIPOLAR_ESTIMATOR = cv2.USAC_ACCURATE
+#: An essential matrix whose estimator inliers are less than this share in front of both
+#: cameras is degenerate (seen on generated orbit scenes): USAC_MAGSAC is tried instead.
+CHEIRAL_SHARE = 0.8
 
 
 @dataclasses.dataclass
@@ -50,7 +57,8 @@ class PairModel:
             each model explains (0 without the model).
         essential: F comes from an essential matrix (both cameras calibrated).
         px: the inlier threshold H was fitted with; epipolar_px: the Sampson distance within
-            which a pair agrees with F (see :data:`AGREE_SIGMAS`); :meth:`agrees`.
+            which a pair agrees with F (see :data:`AGREE_SIGMAS`); :meth:`agrees`;
+            epipolar_fit_px: the inlier threshold F was fitted with.
     """
 
     H: Optional[np.ndarray]
@@ -62,6 +70,7 @@ class PairModel:
     essential: bool = False
     px: float = RANSAC_PX
     epipolar_px: float = EPIPOLAR_PX
+    epipolar_fit_px: float = EPIPOLAR_PX
 
     @property
     def inliers(self) -> int:
@@ -76,6 +85,22 @@ class PairModel:
         """This model with only the selected H or F kept."""
         keep_h, keep_f = (self.H, None) if self.planar else (None, self.F)
         return dataclasses.replace(self, H=keep_h, F=keep_f)
+
+    @property
+    def inlier_share(self) -> float:
+        """Share of the seeds the selected model explains."""
+        return self.inliers / max(self.seeds, 1)
+
+    def rechecked(self, xa: np.ndarray, xb: np.ndarray) -> "PairModel":
+        """The selected model with its support counted on other seeds (its fit thresholds; no
+        cheirality test): e.g. the next window's seeds of the same camera pair.
+
+        Shapes: xa, xb (S, 2).
+        """
+        rh, rf = residuals(self.selected(), xa, xb)
+        inliers = int((rh <= self.px).sum()) if self.planar else int((rf <= self.epipolar_fit_px).sum())
+        support = {"inliers_h": inliers} if self.planar else {"inliers_f": inliers}
+        return dataclasses.replace(self.selected(), seeds=int(xa.shape[0]), **support)
 
     def agrees(self, xa: np.ndarray, xb: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """(M,) bool: each pair xa[m] <-> xb[m] is an inlier of the selected model: its residual
@@ -123,13 +148,13 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
         sigma = float(np.median(inlier_res)) / 0.674 if inlier_res.size else 0.0
         agree_px = float(np.clip(AGREE_SIGMAS * sigma, min(AGREE_MIN_PX, epipolar_px), epipolar_px))
     return PairModel(H, F, planar, seeds=n, inliers_h=nh, inliers_f=nf, essential=calibrated and F is not None,
-                     px=px, epipolar_px=agree_px)
+                     px=px, epipolar_px=agree_px, epipolar_fit_px=epipolar_px)
 
 
 def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int) -> Tuple[Optional[np.ndarray], int]:
     cv2.setRNGSeed(seed)
     try:
-        F, mf = cv2.findFundamentalMat(a, b, cv2.USAC_MAGSAC, px, 0.999, 2000)
+        F, mf = cv2.findFundamentalMat(a, b, EPIPOLAR_ESTIMATOR, px, 0.999, 2000)
     except cv2.error:
         return None, 0
     if F is None or F.shape != (3, 3) or mf is None or int(mf.sum()) < MIN_SEEDS:
@@ -144,19 +169,39 @@ def _fit_essential(a: np.ndarray, b: np.ndarray, px: float, K_a: np.ndarray, K_b
     both cameras."""
     ua, ub = unproject(K_a, a)[:, :2], unproject(K_b, b)[:, :2]
     focal = 0.25 * (K_a[0, 0] + K_a[1, 1] + K_b[0, 0] + K_b[1, 1])
-    cv2.setRNGSeed(seed)
-    try:
-        E, me = cv2.findEssentialMat(ua, ub, np.eye(3), cv2.USAC_MAGSAC, 0.999, px / focal)
-        if E is None or E.shape != (3, 3) or me is None:
-            return None, 0
-        _, _, _, front = cv2.recoverPose(E, ua, ub, np.eye(3), mask=me.copy())
-    except cv2.error:
-        return None, 0
-    inliers = int((front.ravel() > 0).sum())
+    best, inliers = None, 0
+    for method in (EPIPOLAR_ESTIMATOR, cv2.USAC_MAGSAC):
+        E, count, fitted = _essential_with_cheirality(ua, ub, px / focal, method, seed)
+        if count > inliers:
+            best, inliers = E, count
+        # an E whose inliers mostly fail the cheirality test is degenerate: try MAGSAC's
+        if count >= CHEIRAL_SHARE * fitted:
+            break
+    E = best
     if inliers < MIN_SEEDS:
         return None, 0
     F = np.linalg.inv(K_b).T @ E @ np.linalg.inv(K_a)
     return F / np.linalg.norm(F), inliers
+
+
+def _essential_with_cheirality(ua: np.ndarray, ub: np.ndarray, threshold: float, method: int,
+                               seed: int) -> Tuple[Optional[np.ndarray], int, int]:
+    """(E, inliers in front of both cameras, inliers of the estimator) on calibrated points; the
+    5-point solver may return several solutions stacked (k·3, 3): the one with most in front."""
+    cv2.setRNGSeed(seed)
+    try:
+        E_all, me = cv2.findEssentialMat(ua, ub, np.eye(3), method, 0.999, threshold)
+        if E_all is None or me is None or E_all.ndim != 2 or E_all.shape[1] != 3 or E_all.shape[0] % 3:
+            return None, 0, 0
+        best, inliers = None, 0
+        for E in np.split(E_all, E_all.shape[0] // 3):
+            _, _, _, front = cv2.recoverPose(E, ua, ub, np.eye(3), mask=me.copy())
+            count = int((front.ravel() > 0).sum())
+            if count > inliers:
+                best, inliers = E, count
+    except cv2.error:
+        return None, 0, 0
+    return best, inliers, int(me.sum())
 
 
 def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
