@@ -13,7 +13,7 @@ import dataclasses
 import os
 import tempfile
 from pathlib import Path
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
@@ -61,6 +61,9 @@ class Problem:
         R, t: (V, 3, 3), (V, 3) float64 world->camera pose (``x ~ K (R X + t)``) or None.
         image_size: (V, 2) int64 (width, height) or None.
         gt_track: (N,) int64 ground truth (>= 0 point id, -1 unmatched, -2 unlabelled) or None.
+        camera_ids: (V,) tuple of str, the camera of every view (a window of a stream), or None.
+            Lets per-stream state (:mod:`gcn_match_ros.stream`) follow a camera pair from one
+            window to the next; not part of the ``.npz`` format.
     """
 
     view_offsets: np.ndarray
@@ -74,6 +77,7 @@ class Problem:
     image_size: Optional[np.ndarray] = None
     gt_track: Optional[np.ndarray] = None
     name: str = ""
+    camera_ids: Optional[Tuple[str, ...]] = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -146,6 +150,10 @@ class Problem:
             raise FormatError("'R' and 't' must be given together")
         if self.gt_track is not None and np.any(self.gt_track < -2):
             raise FormatError("'gt_track': values must be >= -2")
+        if self.camera_ids is not None:
+            self.camera_ids = tuple(str(c) for c in self.camera_ids)
+            if len(self.camera_ids) != v:
+                raise FormatError(f"'camera_ids': expected {v} camera ids, got {len(self.camera_ids)}")
 
     # -- helpers --------------------------------------------------------------
     def subset_views(self, views) -> "Problem":
@@ -159,7 +167,8 @@ class Problem:
                   for k in ("keypoints", "descriptors", "scales", "orientations", "gt_track")}
         per_view = {k: getattr(self, k)[views] if getattr(self, k) is not None else None
                     for k in ("K", "R", "t", "image_size")}
-        return Problem(view_offsets=offsets, name=self.name, **per_kp, **per_view)
+        cams = tuple(self.camera_ids[v] for v in views) if self.camera_ids is not None else None
+        return Problem(view_offsets=offsets, name=self.name, camera_ids=cams, **per_kp, **per_view)
 
 
 _PROBLEM_REQUIRED = ("view_offsets", "keypoints", "descriptors")

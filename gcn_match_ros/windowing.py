@@ -237,7 +237,7 @@ def window_problem(frames: Sequence[Frame], name: str = "") -> Problem:
         return Problem(view_offsets=offsets, keypoints=stack("keypoints"), descriptors=stack("descriptors"),
                        scales=stack("scales"), orientations=stack("orientations"),
                        K=stack("K", per_view=True), R=stack("R", per_view=True), t=stack("t", per_view=True),
-                       image_size=image_size, name=name)
+                       image_size=image_size, name=name, camera_ids=[f.camera_id for f in frames])
     except FormatError as exc:
         raise FrameError("bad_shape", str(exc)) from None
 

@@ -117,3 +117,26 @@ def test_two_witnesses_vouch_for_an_unverified_view_pair():
     track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5,
                           compatible=TrackCheck(bad, rows, cols))
     assert not (track[w] == track[x] == track[y] == track[z])
+
+
+def test_batched_agreement_equals_each_models_own_check():
+    """WindowGeometry.agree batches every view pair's check, agree_pairs checks a few pairs in
+    plain Python; both must answer as PairModel.agrees."""
+    rng = np.random.default_rng(4)
+    p = _window(sizes=(30, 30, 30))
+    F = np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]])
+    models = {(0, 1): _shift(10, 5), (0, 2): PairModel(None, F, planar=False, seeds=40, inliers_f=40,
+                                                       epipolar_px=40.0), (1, 2): None}
+    geometry = WindowGeometry(p, models)
+    rows = rng.integers(0, 30, 200)
+    cols = np.where(rng.random(200) < 0.5, 30, 60) + rng.integers(0, 30, 200)
+    kp = p.keypoints.astype(np.float64)
+    for slack in (1.0, CHAIN_SLACK):
+        got = geometry.agree(rows, cols, slack)
+        assert geometry.agree_pairs(list(zip(rows.tolist(), cols.tolist())), slack) == got.tolist()
+        assert geometry.agree_pairs(list(zip(cols.tolist(), rows.tolist())), slack) == got.tolist()
+        for r, c, g in zip(rows, cols, got):
+            model = models[(0, p.view_index[c])]
+            want = False if model is None else model.agrees(kp[[r]], kp[[c]], slack)[0]
+            assert g == want
+        assert got.any() and not got.all()

@@ -95,3 +95,16 @@ def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     assert target.read_bytes() == b"x"
     assert os.stat(target).st_mode & 0o777 == os.stat(plain).st_mode & 0o777
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_camera_ids_name_every_view_and_follow_subsets():
+    import pytest as _pytest
+
+    from gcn_match_ros.problem import FormatError, Problem
+
+    kw = dict(view_offsets=[0, 2, 3], keypoints=np.zeros((3, 2)), descriptors=np.ones((3, 4)))
+    p = Problem(camera_ids=["cam0", "cam1"], **kw)
+    assert p.camera_ids == ("cam0", "cam1")
+    assert p.subset_views([1]).camera_ids == ("cam1",) and Problem(**kw).subset_views([1]).camera_ids is None
+    with _pytest.raises(FormatError, match="camera_ids"):
+        Problem(camera_ids=["cam0"], **kw)

@@ -146,6 +146,38 @@ def _solvers_under_test():
     return ["nn", "gcn"] + ([TEST_SOLVER] if TEST_SOLVER not in ("nn", "gcn") else [])
 
 
+def test_matcher_reuses_the_rigs_models_and_answers_as_offline(harness_factory):
+    """A fixed rig: the node fits each camera pair's model once and re-checks it afterwards
+    (diagnostics count it), and solving the same windows offline as one stream
+    (gcn_match_ros.stream.solve_stream) gives the node's tracks exactly."""
+    from gcn_match_ros import solvers
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.stream import solve_stream
+    from gcn_match_ros.windowing import window_problem
+
+    h = harness_factory(solver="gcn")
+    scene = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=200), rng=np.random.default_rng(9))
+    sent = []
+    for k in range(3):
+        t0 = time.time()
+        frames = []
+        for v, cam in enumerate(CAMS):
+            sl = scene.view_slice(v)
+            frames.append(Frame(camera_id=cam, stamp_ns=int((t0 - 0.002 * v) * 1e9), keypoints=scene.keypoints[sl],
+                                descriptors=scene.descriptors[sl], scales=scene.scales[sl],
+                                orientations=scene.orientations[sl], K=scene.K[v], image_size=(640, 480),
+                                frame_id=f"{cam}_optical_frame", descriptor_name="sift"))
+        for f in frames:
+            h.publish(f)
+        sent.append(frames)
+        h.wait_windows(k + 1)
+    _, values = h.wait_diag(lambda v: int(v.get("rig models reused", 0)) > 0)
+    assert int(values["rig models fitted"]) < 3 * 3  # three view pairs, three windows: not every one fitted
+    offline = list(solve_stream(solvers.create("gcn"), [window_problem(frames) for frames in sent]))
+    for msg, result in zip(h.windows, offline):
+        np.testing.assert_array_equal(match_window_to_arrays(msg).track, result.track)
+
+
 @pytest.mark.parametrize("solver", _solvers_under_test())
 def test_matcher_windows_score_high_against_ground_truth(harness_factory, solver):
     h = harness_factory(solver=solver, dense_output=True)

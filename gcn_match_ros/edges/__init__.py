@@ -3,6 +3,6 @@ two-view geometric verification and geometry-guided candidates, with the feature
 learned edge scorer reads.
 
 - :mod:`.candidates`: the candidates of a window and their features;
-- :mod:`.verify`: per view pair, a homography / fundamental matrix fitted by USAC-MAGSAC;
+- :mod:`.verify`: per view pair, a homography / fundamental (or essential) matrix fitted by OpenCV USAC;
 - :mod:`.head`: a model's edge head at inference.
 """

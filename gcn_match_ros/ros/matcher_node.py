@@ -48,6 +48,7 @@ from ..bags.codec import frame_from_keypoints_msg
 from ..descriptors import describe_descriptor_kind
 from ..problem import Problem
 from ..stamps import ns_to_seconds
+from ..stream import StreamState
 from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
@@ -161,6 +162,9 @@ class MatcherNode(Node):
 
         t0 = time.perf_counter()
         self._solver = create_solver(p["solver"], p["checkpoint"], device)
+        # what the solver learns from earlier windows (the rig's two-view models); the worker
+        # thread alone solves, in window order, as gcn_match_ros.stream.solve_stream does offline
+        self._stream = StreamState()
         self._method = self._solver.describe()
         self._solver_kinds = tuple((int(d), bool(b)) for d, b in self._solver.descriptor_kinds)
         self._solver_dims = tuple(sorted({d for d, _ in self._solver_kinds}))
@@ -355,7 +359,7 @@ class MatcherNode(Node):
             return
         stacked = time.perf_counter() - t0
         try:
-            result = self._solver.solve(problem)
+            result = self._solver.solve(problem, stream=self._stream)
         except Exception as exc:
             self._drop_window("solver_error")
             self.get_logger().error(f"solver {self._method} failed on a window of {problem.n_views} views, "
@@ -389,7 +393,9 @@ class MatcherNode(Node):
             status = self._stats.report(
                 f"{self.get_name()}: matcher", self.get_fully_qualified_name(), self._assembler.drops,
                 self._assembler.descriptor_dim, busy, pending, stale_after=max(2.0 * self._diagnostics_period, 1.0),
-                extra={"solver": self._method})
+                extra={"solver": self._method, "rig models reused": str(self._stream.rig.reused),
+                       "rig models fitted": str(self._stream.rig.fitted),
+                       "rig models invalidated": str(self._stream.rig.invalidated)})
         arr = DiagnosticArray(status=[status])
         arr.header.stamp = self.get_clock().now().to_msg()
         return arr

@@ -28,6 +28,7 @@ from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..problem import Problem, Result
 from ..rounding import greedy_tracks
 from ..similarity import DescriptorSimilarity
+from ..stream import StreamState
 from ..timing import StageTimes, stage
 
 __all__ = ["SoftMatches", "Solver", "SolverConfig", "build_config"]
@@ -149,11 +150,14 @@ class Solver(abc.ABC):
             (a learned model takes only its training descriptors).
         needs_graph: :meth:`solve` builds the correspondence graph for :meth:`match` (False:
             the method makes its own candidates and gets ``graph=None``).
+        uses_rig_memory: :meth:`match` takes ``rig=`` (:class:`gcn_match_ros.edges.rig_memory.RigMemory`)
+            and :meth:`solve` passes the stream's.
     """
 
     name: ClassVar[str]
     Config: ClassVar[Type[SolverConfig]] = SolverConfig
     needs_graph: ClassVar[bool] = True
+    uses_rig_memory: ClassVar[bool] = False
 
     def __init__(self, config: Optional[SolverConfig] = None, **settings: Any) -> None:
         if config is not None and settings:
@@ -198,10 +202,13 @@ class Solver(abc.ABC):
             the method's own (N,) tracks if it rounds itself (None: the shared greedy rounding).
         """
 
-    def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None) -> Result:
+    def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None,
+              stream: Optional[StreamState] = None) -> Result:
         """Prepare + graph build (unless ``graph`` is given, e.g. a synthetic noisy graph) + match +
         rounding. ``Result.seconds`` is the wall time, ``Result.timings`` its stages
-        (:mod:`gcn_match_ros.timing`: graph, similarity, match, rounding and the method's own)."""
+        (:mod:`gcn_match_ros.timing`: graph, similarity, match, rounding and the method's own).
+        ``stream``: the state of the stream this window belongs to (:mod:`gcn_match_ros.stream`),
+        for solvers that use one (``uses_rig_memory``); None: the window stands alone."""
         times = StageTimes()
         start = time.perf_counter()
         with times.recording():
@@ -211,7 +218,10 @@ class Solver(abc.ABC):
                 with stage("graph"):
                     graph = build_graph(problem, self.graph_config, similarity)
             with stage("match"):
-                soft, track = self.match(problem, graph, similarity)
+                if self.uses_rig_memory and stream is not None:
+                    soft, track = self.match(problem, graph, similarity, rig=stream.rig)
+                else:
+                    soft, track = self.match(problem, graph, similarity)
             if track is None:
                 with stage("rounding"):
                     track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,

@@ -14,7 +14,7 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 import torch
@@ -23,6 +23,7 @@ from ..descriptors import describe_descriptor_kind, descriptor_kind
 from ..edges.candidates import candidate_edges
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
+from ..edges.rig_memory import RigMemory
 from ..edges.verify import MIN_SEEDS
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
@@ -101,6 +102,7 @@ class GCNSolver(Solver):
 
     name = "gcn"
     Config = GCNSolverConfig
+    uses_rig_memory = True
 
     def __init__(self, config=None, **settings) -> None:
         super().__init__(config, **settings)
@@ -158,7 +160,8 @@ class GCNSolver(Solver):
         base = super().describe()
         return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity):
+    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity,
+              rig: Optional[RigMemory] = None):
         if problem.n_keypoints == 0:
             return SoftMatches.from_graph(graph), None
         with torch.inference_mode():
@@ -168,7 +171,7 @@ class GCNSolver(Solver):
             if has_edge_head(self.model):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
                 with stage("candidates"):
-                    es = candidate_edges(problem, edge_config_of(self.model), similarity)
+                    es = candidate_edges(problem, edge_config_of(self.model), similarity, rig)
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):

@@ -1,6 +1,6 @@
 """Honest baseline for test-time geometry: mutual NN + ratio 0.8, verified per view pair.
 
-Plain ``nn-ransac`` is the classic baseline: per view pair a USAC-MAGSAC homography and
+Plain ``nn-ransac`` is the classic baseline: per view pair a USAC homography and
 fundamental matrix (1.5 px) on the confident pairs (:mod:`gcn_match_ros.edges.verify`, H
 chosen when it explains the seeds about as well as F, any fitted model believed); a
 nearest-neighbour pair is kept when its residual under the selected model is below ``px``
@@ -20,6 +20,7 @@ from typing import Optional
 
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..edges.consistency import WindowGeometry, verified_tracks
+from ..edges.rig_memory import RigMemory
 from ..edges.verify import RANSAC_PX
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
@@ -47,11 +48,13 @@ class NNRansacSolver(Solver):
     name = "nn-ransac"
     Config = NNRansacConfig
     needs_graph = False  # the candidate edges hold the mutual nearest neighbours already
+    uses_rig_memory = True
 
-    def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity):
+    def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity,
+              rig: Optional[RigMemory] = None):
         if self.config.guided:
             es = candidate_edges(problem, EdgeConfig(k=1, guided=True, guide_px=self.config.px, normalization="l2"),
-                                 similarity)
+                                 similarity, rig)
             f = es.features
             pick = (f[:, _F["confident"]] > 0) | (f[:, _F["guided"]] > 0)
             rows, cols, scores = es.rows[pick], es.cols[pick], f[pick, _F["cosine"]]
@@ -61,7 +64,7 @@ class NNRansacSolver(Solver):
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
                                                  min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2),
-                             similarity)
+                             similarity, rig)
         f = es.features
         keep = (f[:, _F["confident"]] > 0) & ((f[:, _F["has_model"]] == 0) | (es.res_px < self.config.px))
         return SoftMatches(es.rows[keep], es.cols[keep], f[keep, _F["cosine"]]), None

@@ -1,0 +1,113 @@
+#!/usr/bin/env python
+"""Where one window's solve spends its time: per-stage milliseconds, offline, one process.
+
+Solves synthetic windows (``synthetic.rome16k``: SIFT-like 128-D descriptors of a 3D scene,
+the node benchmark's input) of every (views, keypoints per view) configuration with each
+solver, ``--repeats`` times after one warm-up solve, and reports the median of every stage
+that :mod:`gcn_match_ros.timing` records (similarity, graph, candidates, geometry, network,
+edge_head, rounding, match), the median total, the total relative to the first solver's
+(``nn`` by default: the issue's "x nn" figure) and the peak resident memory growth of the
+solves (``tracemalloc`` does not see torch's allocator, so the process RSS is read).
+
+Every solver runs twice: each window on its own ("cold": every two-view model fitted), and
+as a stream of that rig (one :class:`gcn_match_ros.stream.StreamState` across the repeats,
+cameras named: the remembered two-view models are re-checked and reused,
+:mod:`gcn_match_ros.edges.rig_memory`) — what the matcher node does with a fixed rig.
+
+Usage::
+
+    OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/stage_breakdown.py
+    ./run.sh python benchmarks/stage_breakdown.py --configs 4x500 10x1000 --solvers nn gcn --repeats 5
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gcn_match_ros import solvers
+from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
+from gcn_match_ros.experiments import results_header
+from gcn_match_ros.stream import StreamState
+
+REPO = Path(__file__).resolve().parents[1]
+STAGES = ("similarity", "graph", "candidates", "geometry", "network", "edge_head", "rounding", "match")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--configs", nargs="+", default=["4x500", "8x500", "4x1000", "10x1000"],
+                   help="VIEWSxKEYPOINTS windows")
+    p.add_argument("--solvers", nargs="+", default=["nn", "gcn"], help="solver specs; the first is the reference")
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "stage_breakdown.md")
+    p.add_argument("--append", action="store_true")
+    return p
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def measure(spec: str, views: int, keypoints: int, repeats: int, stream: bool) -> dict:
+    problem = random_scene_problem(rome16k(views, n_points=keypoints), rng=0)
+    problem.camera_ids = tuple(f"cam{v}" for v in range(views))
+    solver = solvers.create(spec)
+    state = StreamState() if stream else None
+    solver.solve(problem, stream=state)  # warm-up: model load, first-call allocations (and the first fits)
+    before = _rss_mb()
+    totals, stages = [], {s: [] for s in STAGES}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = solver.solve(problem, stream=state)
+        totals.append(time.perf_counter() - t0)
+        for s in STAGES:
+            stages[s].append(result.timings.get(s, 0.0))
+    return {"spec": solver.describe() + (" (stream)" if stream else ""), "views": views,
+            "keypoints": problem.n_keypoints,
+            "total": float(np.median(totals)), "stages": {s: float(np.median(v)) for s, v in stages.items()},
+            "rss_growth": _rss_mb() - before}
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = []
+    for cfg in args.configs:
+        views, keypoints = (int(x) for x in cfg.lower().split("x"))
+        ref = None
+        for spec in args.solvers:
+            for stream in (False, True):
+                r = measure(spec, views, keypoints, args.repeats, stream)
+                ref = ref if ref is not None else r["total"]
+                r["ratio"] = r["total"] / ref
+                rows.append(r)
+                print(f"{views} x {keypoints}: {r['spec']}: {1e3 * r['total']:.1f} ms ({r['ratio']:.1f}x)", flush=True)
+    head = "| window | solver | " + " | ".join(STAGES) + " | total [ms] | x first | peak RSS growth [MB] |"
+    lines = [head, "|" + "---|" * (len(STAGES) + 5)]
+    for r in rows:
+        cells = " | ".join(f"{1e3 * r['stages'][s]:.1f}" for s in STAGES)
+        lines.append(f"| {r['views']} x {r['keypoints'] // r['views']} | {r['spec']} | {cells} | "
+                     f"{1e3 * r['total']:.1f} | {r['ratio']:.1f} | {r['rss_growth']:.0f} |")
+    table = "\n".join(lines)
+    print(table)
+    header = results_header("Per-stage time of one window (offline)", __file__,
+                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
+                            env=("OPENBLAS_NUM_THREADS=1",))
+    text = ("\n".join(header) + f"\n\nMedian of {args.repeats} solves after one warm-up; stages in ms, exclusive of nested "
+              "stages (gcn_match_ros.timing); windows: synthetic.rome16k, SIFT-like descriptors.\n\n"
+            + table + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with open(args.out, "a" if args.append else "w") as f:
+        f.write(("\n---\n\n" if args.append else "") + text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""Two-view models that outlive a window: the cameras of one rig keep their relative pose.
+
+:class:`RigMemory` keeps, per camera pair, the last trusted model that
+:func:`.candidates.candidate_edges` fitted. For the next window of the same pair the model is
+first re-checked on that window's seeds (the confident descriptor pairs a fit would use,
+:meth:`.verify.PairModel.rechecked`): it is reused — no RANSAC — when it is still trusted
+(:meth:`.verify.PairModel.trusted`) and explains at least :data:`REUSE_SHARE` of the inlier
+share it had when fitted. Otherwise it is dropped and the pair re-fitted, so a camera pair
+whose geometry changes (cameras on different robots, a rig knocked out of alignment) is
+re-fitted in every window and never matched with a stale model.
+
+The memory is per stream (one per matcher node, one per offline replay of a bag:
+:class:`gcn_match_ros.stream.StreamState`), used in window order; a problem without
+``camera_ids`` (a single file) never touches it.
+"""
+from __future__ import annotations
+
+from typing import Callable, Dict, Optional, Tuple
+
+import numpy as np
+
+from .verify import MIN_INLIER_RATIO, MIN_INLIERS, PairModel
+
+__all__ = ["RigMemory", "REUSE_SHARE"]
+
+#: A remembered model is reused while its inlier share on the new seeds is at least this
+#: fraction of its share at fitting time (and it is still trusted).
+REUSE_SHARE = 0.8
+
+CameraPair = Tuple[str, str]
+
+
+class RigMemory:
+    """Trusted two-view models by camera pair, and how often they were reused.
+
+    Attributes:
+        reused, fitted, invalidated: counts of model look-ups answered from memory, by a new
+            fit, and of remembered models that failed the re-check (each also a fit).
+    """
+
+    def __init__(self) -> None:
+        self._models: Dict[CameraPair, Tuple[PairModel, float]] = {}
+        self.reused = 0
+        self.fitted = 0
+        self.invalidated = 0
+
+    def __len__(self) -> int:
+        return len(self._models)
+
+    def clear(self) -> None:
+        """Forget every model (counts stay)."""
+        self._models.clear()
+
+    def model(self, cameras: CameraPair, seeds_a: np.ndarray, seeds_b: np.ndarray,
+              fit: Callable[[], Optional[PairModel]], min_inliers: int = MIN_INLIERS,
+              min_inlier_ratio: float = MIN_INLIER_RATIO) -> Optional[PairModel]:
+        """The trusted (selected) model of ``cameras`` for this window, or None.
+
+        Args:
+            cameras: (camera of view a, camera of view b), in the window's view order.
+            seeds_a, seeds_b: (S, 2) this window's seed pairs, pixels.
+            fit: fits a model on those seeds (called only when memory cannot answer).
+            min_inliers, min_inlier_ratio: the trust rule (:meth:`PairModel.trusted`).
+        """
+        remembered = self._models.get(cameras)
+        if remembered is not None:
+            model, share_at_fit = remembered
+            rechecked = model.rechecked(seeds_a, seeds_b)
+            if (rechecked.trusted(min_inliers, min_inlier_ratio)
+                    and rechecked.inlier_share >= REUSE_SHARE * share_at_fit):
+                self.reused += 1
+                return rechecked
+            self.invalidated += 1
+            del self._models[cameras]
+        self.fitted += 1
+        model = fit()
+        if model is None or not model.trusted(min_inliers, min_inlier_ratio):
+            return None
+        model = model.selected()
+        self._models[cameras] = (model, model.inlier_share)
+        return model

@@ -1,0 +1,104 @@
+"""Tests of gcn_match_ros.edges.rig_memory and gcn_match_ros.stream: two-view models reused
+across a stream's windows while they hold, re-fitted when the geometry changes, and the same
+answers online (one window at a time) and offline (solve_stream)."""
+import dataclasses
+
+import numpy as np
+
+from gcn_match_ros import solvers
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.edges.rig_memory import RigMemory
+from gcn_match_ros.edges.verify import fit_pair, residuals
+from gcn_match_ros import geometry
+from gcn_match_ros.stream import StreamState, solve_stream
+
+H_A = np.array([[1.1, 0.05, 12.0], [-0.03, 0.95, -7.0], [2e-4, -1e-4, 1.0]])
+H_B = np.array([[0.9, -0.2, 40.0], [0.15, 1.05, 30.0], [-1e-4, 2e-4, 1.0]])
+
+
+def _seeds(H, rng, n=60, outliers=10):
+    xa = rng.uniform(0, 640, (n, 2))
+    xb = geometry.transfer(H, xa) + rng.normal(scale=0.3, size=(n, 2))
+    xb[:outliers] = rng.uniform(0, 640, (outliers, 2))
+    return xa, xb
+
+
+class _CountingFit:
+    def __init__(self, xa, xb):
+        self.xa, self.xb, self.calls = xa, xb, 0
+
+    def __call__(self):
+        self.calls += 1
+        return fit_pair(self.xa, self.xb)
+
+
+def test_a_model_that_still_holds_is_reused_without_a_fit():
+    rng = np.random.default_rng(0)
+    rig = RigMemory()
+    first = _CountingFit(*_seeds(H_A, rng))
+    model = rig.model(("cam0", "cam1"), first.xa, first.xb, first)
+    assert model is not None and model.planar and first.calls == 1 and len(rig) == 1
+    # the next window of the same rig: other points, same relative pose
+    nxt = _CountingFit(*_seeds(H_A, rng))
+    again = rig.model(("cam0", "cam1"), nxt.xa, nxt.xb, nxt)
+    assert nxt.calls == 0 and rig.reused == 1 and again.H is model.H
+    assert again.seeds == 60 and again.inliers >= 45  # support counted on the new seeds
+    # another camera pair is a different entry
+    other = _CountingFit(*_seeds(H_A, rng))
+    rig.model(("cam0", "cam2"), other.xa, other.xb, other)
+    assert other.calls == 1 and len(rig) == 2
+
+
+def test_a_model_whose_geometry_changed_is_refitted_every_time():
+    rng = np.random.default_rng(1)
+    rig = RigMemory()
+    w0 = _CountingFit(*_seeds(H_A, rng))
+    rig.model(("a", "b"), w0.xa, w0.xb, w0)
+    # cameras on different robots: every window another relative pose
+    for k, H in enumerate([H_B, H_A @ H_B, H_B @ H_B]):
+        w = _CountingFit(*_seeds(H, rng))
+        model = rig.model(("a", "b"), w.xa, w.xb, w)
+        assert w.calls == 1, k  # never matched with the stale model
+        assert rig.invalidated == k + 1 and rig.reused == 0
+        assert residuals(model, w.xa[10:], w.xb[10:])[0].max() < 2.0  # the new geometry, not the old
+
+
+def test_an_untrusted_fit_is_not_remembered():
+    rng = np.random.default_rng(2)
+    rig = RigMemory()
+    xa, xb = rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2))  # no geometry at all
+    fit = _CountingFit(xa, xb)
+    assert rig.model(("a", "b"), xa, xb, fit) is None and len(rig) == 0
+    assert rig.model(("a", "b"), xa, xb, fit) is None and fit.calls == 2
+
+
+def test_a_stream_reuses_models_and_answers_as_solve_stream():
+    base = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=200), rng=np.random.default_rng(9))
+    windows = [dataclasses.replace(base, camera_ids=("c0", "c1", "c2"), name=f"w{k}") for k in range(3)]
+    solver = solvers.create("gcn")
+    state = StreamState()
+    online = [solver.solve(w, stream=state) for w in windows]  # the node: one window at a time
+    trusted = len(state.rig)  # view pairs with a trusted model: fitted once, then reused
+    assert trusted >= 2 and state.rig.reused == 2 * trusted and state.rig.fitted == 3 + 2 * (3 - trusted)
+    offline = list(solve_stream(solvers.create("gcn"), windows))
+    for a, b in zip(online, offline):
+        np.testing.assert_array_equal(a.track, b.track)
+        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+    # a window that names no cameras never touches the memory
+    counts = (state.rig.fitted, state.rig.reused)
+    solver.solve(dataclasses.replace(base, camera_ids=None), stream=state)
+    assert (state.rig.fitted, state.rig.reused) == counts
+
+
+def test_reused_models_match_as_well_as_fresh_fits():
+    """With the rig's models remembered the tracks equal those of fitting every window afresh
+    when the windows share the geometry (the re-check keeps the same model)."""
+    base = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=200), rng=np.random.default_rng(3))
+    window = dataclasses.replace(base, camera_ids=("c0", "c1", "c2"))
+    solver = solvers.create("gcn")
+    cold = solver.solve(window)
+    state = StreamState()
+    solver.solve(window, stream=state)
+    warm = solver.solve(window, stream=state)
+    assert state.rig.reused == len(state.rig) >= 2
+    np.testing.assert_array_equal(cold.track, warm.track)
