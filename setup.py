@@ -10,6 +10,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 data_files = [
     ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
     ('share/' + PACKAGE, ['package.xml']),
+    ('share/' + PACKAGE + '/config', sorted(os.path.relpath(p, HERE) for p in glob.glob(os.path.join(HERE, 'config', '*.yaml')))),
+    ('share/' + PACKAGE + '/launch', sorted(os.path.relpath(p, HERE) for p in glob.glob(os.path.join(HERE, 'launch', '*.launch.py')))),
 ]
 # Sample bags shipped with the package (if any exist at build time). rosbag2 bags are
 # directories (metadata.yaml + storage files), so keep their relative layout.

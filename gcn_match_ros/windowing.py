@@ -170,6 +170,32 @@ def kept_rows(n: int, scores: Optional[np.ndarray], max_keypoints: int) -> np.nd
     return np.arange(max_keypoints)
 
 
+#: Largest |pixel coordinate| accepted when the image size is unknown (no camera is that big).
+MAX_ABS_PIXEL = 1e5
+#: Largest |descriptor value| accepted (SIFT bytes <= 255, ORB bits, learned descriptors ~1).
+MAX_ABS_DESCRIPTOR = 1e6
+#: Keypoints may sit this far outside the image (sub-pixel refinement at the border).
+IMAGE_MARGIN_PX = 1.0
+
+
+def _check_ranges(kp: np.ndarray, desc: np.ndarray, image_size) -> None:
+    """Raise ``out_of_range`` for keypoints or descriptors no camera produces (validate_frame)."""
+    if image_size is not None and len(image_size) == 2 and all(int(v) > 0 for v in image_size):
+        w, h = (float(v) for v in image_size)
+        lo, hi = -IMAGE_MARGIN_PX, np.array([w, h]) + IMAGE_MARGIN_PX
+        outside = np.any((kp < lo) | (kp > hi), axis=1)
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise FrameError("out_of_range", f"{int(outside.sum())} keypoints outside the {int(w)} x {int(h)} image "
+                                             f"(e.g. #{i} at {kp[i].tolist()})")
+    elif np.abs(kp).max() > MAX_ABS_PIXEL:
+        raise FrameError("out_of_range", f"keypoint coordinates up to {np.abs(kp).max():.3g} px "
+                                         f"(more than {MAX_ABS_PIXEL:.0e}: not from a camera)")
+    if desc.size and np.abs(desc).max() > MAX_ABS_DESCRIPTOR:
+        raise FrameError("out_of_range", f"descriptor values up to {np.abs(desc).max():.3g} "
+                                         f"(more than {MAX_ABS_DESCRIPTOR:.0e})")
+
+
 def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descriptor_dim: int = 0) -> Frame:
     """Validate a frame and return a cleaned copy (float32 arrays, the :func:`kept_rows` of
     ``config.max_keypoints``).
@@ -179,7 +205,10 @@ def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descript
 
     Raises:
         FrameError: with reason ``bad_shape``, ``count_mismatch``, ``non_finite``, ``empty``,
-            ``descriptor_dim`` or ``bad_intrinsics``.
+            ``descriptor_dim``, ``bad_intrinsics`` or ``out_of_range`` (a keypoint outside the
+            image when its size is known, else beyond :data:`MAX_ABS_PIXEL`; a descriptor value
+            beyond :data:`MAX_ABS_DESCRIPTOR`: finite but meaningless, and the similarity of
+            such values overflows to NaN).
     """
     kp = np.asarray(frame.keypoints, dtype=np.float64)
     desc = np.asarray(frame.descriptors, dtype=np.float64)
@@ -194,6 +223,7 @@ def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descript
         raise FrameError("descriptor_dim", f"descriptors: dimension {desc.shape[1]}, expected {descriptor_dim}")
     if not (np.all(np.isfinite(kp)) and np.all(np.isfinite(desc))):
         raise FrameError("non_finite", "keypoints or descriptors contain NaN or inf")
+    _check_ranges(kp, desc, frame.image_size)
     scales = _optional(frame.scales, n, "scales")
     orient = _optional(frame.orientations, n, "orientations")
     scores = _optional(frame.scores, n, "scores")

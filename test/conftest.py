@@ -112,7 +112,7 @@ class PermutedScene:
                  seed: int = 0) -> None:
         self.rng = np.random.default_rng(seed)
         self.base = np.abs(self.rng.normal(size=(points, dim)))
-        self.xy = self.rng.uniform(20, 620, size=(points, 2))
+        self.xy = self.rng.uniform((20, 20), (620, 460), size=(points, 2))  # inside the 640 x 480 image
         self.points, self.dim, self.noise, self.distractors = points, dim, noise, distractors
 
     def frame(self, cam: str, seconds: float):
@@ -123,7 +123,7 @@ class PermutedScene:
         xy = self.xy[perm] + rng.normal(scale=0.5, size=(p, 2))
         if self.distractors:
             desc = np.vstack([desc, np.abs(rng.normal(size=(self.distractors, self.dim)))])
-            xy = np.vstack([xy, rng.uniform(20, 620, size=(self.distractors, 2))])
+            xy = np.vstack([xy, rng.uniform((20, 20), (620, 460), size=(self.distractors, 2))])
         gt = np.concatenate([perm, -np.ones(self.distractors, np.int64)])
         f = Frame(camera_id=cam, stamp_ns=seconds_to_ns(seconds), keypoints=xy.astype(np.float32),
                   descriptors=desc.astype(np.float32), frame_id=f"{cam}_optical_frame",
@@ -154,7 +154,7 @@ def synthetic_frames(steps: int = 5, dim: int = 8, seed: int = 0, skip=((3, "cam
             K = np.array([[500.0 + j, 0, 320], [0, 501.0, 240], [0, 0, 1]]) if calibrated else None
             frames[cam].append(Frame(
                 camera_id=cam, stamp_ns=1_700_000_000 * 10**9 + k * 10**8 + j * 2 * 10**6,
-                keypoints=rng.uniform(0, 600, (n, 2)).astype(np.float32),
+                keypoints=rng.uniform((0, 0), (600, 450), (n, 2)).astype(np.float32),  # inside 640 x 480
                 descriptors=rng.normal(size=(n, dim)).astype(np.float32), frame_id=f"{cam}_optical_frame",
                 scales=rng.uniform(1, 9, n).astype(np.float32),
                 orientations=rng.uniform(-3, 3, n).astype(np.float32),

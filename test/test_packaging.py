@@ -200,7 +200,11 @@ def test_colcon_build_ros2_run_layout(tmp_path, monkeypatch):
     assert Path(get_package_prefix(PKG)) == pkg_prefix
     assert Path(get_package_prefix("gcn_match_msgs")) == msgs_prefix
     assert (pkg_prefix / "share/ament_index/resource_index/packages" / PKG).is_file()
-    assert (Path(get_package_share_directory(PKG)) / "package.xml").is_file()
+    share = Path(get_package_share_directory(PKG))
+    assert (share / "package.xml").is_file()
+    # parameter files and the launch file, where `ros2 launch` / --params-file users find them
+    assert {p.name for p in (share / "config").glob("*.yaml")} == {p.name for p in (REPO / "config").glob("*.yaml")}
+    assert (share / "launch" / "gcn_match.launch.py").is_file()
     libdir = pkg_prefix / "lib" / PKG
     for exe, target in EXECUTABLES.items():
         path = libdir / exe
@@ -233,3 +237,41 @@ def test_colcon_build_ros2_run_layout(tmp_path, monkeypatch):
                          timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().startswith(str(msgs_site)), out.stdout
+
+
+#: Third-party top-level modules of the package -> how package.xml declares them (rosdep key,
+#: or "pip:" for a documented pip dependency without a key).
+_RUNTIME_DEPENDENCIES = {
+    "numpy": "python3-numpy", "cv2": "python3-opencv", "scipy": "python3-scipy", "torch": "python3-torch",
+    "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "rosbags": "pip:rosbags",
+    "rclpy": "rclpy", "rcl_interfaces": "rcl_interfaces", "std_msgs": "std_msgs", "sensor_msgs": "sensor_msgs",
+    "geometry_msgs": "geometry_msgs", "diagnostic_msgs": "diagnostic_msgs",
+    "builtin_interfaces": "builtin_interfaces", "gcn_match_msgs": "gcn_match_msgs",
+    "ament_index_python": "ament_index_python",
+}
+
+
+def test_package_xml_declares_every_runtime_dependency():
+    import ast
+    import sys
+    import xml.etree.ElementTree as ET
+
+    package_dir = REPO / "gcn_match_ros"
+    imported = set()
+    for path in package_dir.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                imported.add(node.module.split(".")[0])
+    third_party = imported - set(sys.stdlib_module_names) - {"gcn_match_ros", "__future__"}
+    unknown = third_party - set(_RUNTIME_DEPENDENCIES)
+    assert not unknown, f"imports without a declared dependency: {sorted(unknown)}"
+    text = (REPO / "package.xml").read_text()
+    declared = {e.text for e in ET.fromstring(text).iter() if e.tag in ("exec_depend", "depend")}
+    for module in sorted(third_party):
+        key = _RUNTIME_DEPENDENCIES[module]
+        if key.startswith("pip:"):
+            assert f"pip install {key[4:]}" in text, f"{module}: pip dependency not documented in package.xml"
+        else:
+            assert key in declared, f"{module}: package.xml lacks <exec_depend>{key}</exec_depend>"

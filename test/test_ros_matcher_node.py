@@ -244,6 +244,8 @@ def test_matcher_counts_bad_input_and_keeps_running(harness_factory):
     bad(keypoints=array.array("f", [1.0] * (2 * n - 2)))                                   # count mismatch
     bad(descriptors=array.array("f", np.full(n * 128, np.nan, np.float32).tobytes()))      # NaN
     bad(keypoints=array.array("f", np.full(2 * n, np.inf, np.float32).tobytes()))          # inf
+    bad(keypoints=array.array("f", np.full(2 * n, 1e30, np.float32).tobytes()))           # finite, absurd
+    bad(keypoints=array.array("f", np.full(2 * n, 5000.0, np.float32).tobytes()))         # outside the image
     bad(count=0, keypoints=array.array("f"), descriptors=array.array("f"), scales=array.array("f"),
         orientations=array.array("f"))                                                    # empty frame
     bad(descriptor_type=5)                                                                 # unknown type
@@ -252,7 +254,7 @@ def test_matcher_counts_bad_input_and_keeps_running(harness_factory):
     h.publish(scene.frame("cam1", time.time() + 100.0)[0])                                 # far future
     h.publish(scene.frame("cam1", time.time() - 50.0)[0])                                  # out of order
     # Topics are not ordered against each other: let the bad frames be handled first.
-    h.wait_diag(lambda v: v.get("frames dropped total") == "10")
+    h.wait_diag(lambda v: v.get("frames dropped total") == "12")
     # A huge frame (6000 keypoints) is cut to max_keypoints and still matched.
     t = next(clock)
     big = Frame(camera_id="cam0", stamp_ns=seconds_to_ns(t), keypoints=rng.uniform(0, 600, (6000, 2)),
@@ -267,9 +269,10 @@ def test_matcher_counts_bad_input_and_keeps_running(harness_factory):
                 "frames dropped non_finite": "2", "frames dropped empty": "1",
                 "frames dropped descriptor_type": "1", "frames dropped too_large": "1",
                 "frames dropped camera_mismatch": "1", "frames dropped future": "1",
-                "frames dropped out_of_order": "1", "frames truncated": "1", "windows published": "3"}
+                "frames dropped out_of_order": "1", "frames dropped out_of_range": "2", "frames truncated": "1",
+                "windows published": "3"}
     st, values = h.wait_diag(lambda v: all(v.get(k) == x for k, x in expected.items()))
-    assert values["frames dropped total"] == "10" and values["windows dropped total"] == "0"
+    assert values["frames dropped total"] == "12" and values["windows dropped total"] == "0"
     assert len(h.windows) == 3
     for m in h.windows:
         validate_match_window(m)

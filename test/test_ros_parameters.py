@@ -61,3 +61,44 @@ def test_node_parameters_name_their_choices():
 def test_a_bool_parameter_has_no_range():
     with pytest.raises(ValueError, match="flag: a bool parameter has no range"):
         ParameterSpec("flag", True, "a flag", low=0, high=1).descriptor()
+
+
+# ---------------------------------------------------------------------------------------
+# Parameter files (config/): the node starts from each and its parameters take the values
+# ---------------------------------------------------------------------------------------
+import uuid  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import yaml  # noqa: E402
+
+from gcn_match_ros.ros.parameters import params_yaml  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+
+
+def test_matcher_yaml_is_every_parameter_at_its_default():
+    """config/matcher.yaml is generated from the parameter table (one owner); regenerate with
+    ``python -c "from gcn_match_ros.ros.parameters import params_yaml; print(params_yaml(), end='')" > config/matcher.yaml``."""
+    assert (CONFIG / "matcher.yaml").read_text() == params_yaml()
+    values = yaml.safe_load(params_yaml())["/**/matcher_node"]["ros__parameters"]
+    assert values == {spec.name: spec.default for spec in MATCHER_PARAMETERS}
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in CONFIG.glob("*.yaml")))
+def test_the_node_starts_from_each_parameter_file(name):
+    from gcn_match_ros.ros.matcher_node import MatcherNode
+    from conftest import domain_id
+    from gcn_match_ros.ros.testing import RosSession
+
+    wanted = yaml.safe_load((CONFIG / name).read_text())["/**/matcher_node"]["ros__parameters"]
+    assert set(wanted) <= {spec.name for spec in MATCHER_PARAMETERS}, "unknown parameters in the file"
+    with RosSession("tester", domain_id=domain_id()) as session:
+        node = MatcherNode(context=session.context, namespace=f"/t{uuid.uuid4().hex[:10]}",
+                           cli_args=["--ros-args", "--params-file", str(CONFIG / name)])
+        try:
+            got = {k: node.get_parameter(k).value for k in wanted}
+            assert got == wanted
+            assert node._method.startswith(wanted.get("solver", "gcn").split(":")[0])
+        finally:
+            assert node.stop()
+            node.destroy_node()

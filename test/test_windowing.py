@@ -170,3 +170,31 @@ def test_a_camera_arriving_late_still_joins_within_max_delay():
     assert sum(len(w) == 3 for w in complete) == 7
     impatient, asm = _run(arrivals, max_delay=0.0)
     assert sum(len(w) == 3 for w in impatient) == 0 and asm.drops["out_of_order"] == 0
+
+
+def test_absurd_or_out_of_image_keypoints_and_descriptors_are_refused():
+    """Finite but meaningless input (e.g. 1e30) would make the similarity NaN and lose the whole
+    window as a solver error; it is refused per frame instead, with its own reason."""
+    import dataclasses
+
+    from gcn_match_ros.windowing import MAX_ABS_DESCRIPTOR, MAX_ABS_PIXEL
+
+    rng = np.random.default_rng(0)
+    kp, desc = rng.uniform(0, 400, (10, 2)), rng.random((10, 8))
+
+    def frame(**changes):
+        f = Frame(camera_id="cam0", stamp_ns=1, keypoints=kp, descriptors=desc)
+        return dataclasses.replace(f, **changes)
+
+    validate_frame(frame())
+    validate_frame(frame(image_size=(640, 480)))
+    for changes in ({"keypoints": np.where(np.arange(10)[:, None] == 3, 1e30, kp)},
+                    {"keypoints": kp + 2 * MAX_ABS_PIXEL},
+                    {"keypoints": kp + [0, 300], "image_size": (640, 480)},   # below the image
+                    {"keypoints": kp - 5, "image_size": (640, 480)},          # left of / above it
+                    {"descriptors": desc * 2 * MAX_ABS_DESCRIPTOR}):
+        with pytest.raises(FrameError) as err:
+            validate_frame(frame(**changes))
+        assert err.value.reason == "out_of_range"
+    # a keypoint refined to just past the border is fine
+    validate_frame(frame(keypoints=np.vstack([kp[:-1], [640.5, 0.0]]), image_size=(640, 480)))

@@ -17,7 +17,8 @@ from rclpy.node import Node
 from ..solvers import available_solvers
 from ..windowing import window_parameters
 
-__all__ = ["ParameterSpec", "MATCHER_PARAMETERS", "WINDOW_PARAMETER_NAMES", "INPUT_QOS", "declare", "values"]
+__all__ = ["ParameterSpec", "MATCHER_PARAMETERS", "WINDOW_PARAMETER_NAMES", "INPUT_QOS", "declare", "values",
+           "params_yaml"]
 
 #: Accepted values of the ``input_qos`` parameter.
 INPUT_QOS = ("sensor_data", "reliable")
@@ -88,3 +89,36 @@ def declare(node: Node, specs: Tuple[ParameterSpec, ...] = MATCHER_PARAMETERS) -
 def values(node: Node, specs: Tuple[ParameterSpec, ...] = MATCHER_PARAMETERS) -> Dict[str, Any]:
     """The current value of every parameter of ``specs``."""
     return {spec.name: node.get_parameter(spec.name).value for spec in specs}
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace('\\', '\\\\').replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_yaml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def params_yaml(specs: Tuple[ParameterSpec, ...] = MATCHER_PARAMETERS, node: str = "matcher_node") -> str:
+    """A ROS 2 parameter file of every parameter in ``specs`` at its default, each commented with
+    its description, range and whether it is read-only: ``config/matcher.yaml`` is this text
+    (a test keeps it so). The key ``/**/<node>`` applies it to the node in any namespace."""
+    lines = [f"# Parameters of {node} (gcn_match_ros), every one at its default.",
+             "# Generated from gcn_match_ros/ros/parameters.py; start a node with",
+             "#   --ros-args --params-file config/matcher.yaml [--params-file config/<preset>.yaml]",
+             "# (later files override earlier ones; a preset alone also works: what it omits stays at",
+             "# the default). read-only: fixed at start-up.",
+             f"/**/{node}:", "  ros__parameters:"]
+    for spec in specs:
+        notes = []
+        if spec.low is not None:
+            notes.append(f"range [{spec.low:g}, {spec.high:g}]")
+        if spec.constraints:
+            notes.append(spec.constraints)
+        if spec.read_only:
+            notes.append("read-only")
+        lines.append(f"    # {spec.description}" + (f" ({'; '.join(notes)})" if notes else ""))
+        lines.append(f"    {spec.name}: {_yaml_value(spec.default)}")
+    return "\n".join(lines) + "\n"
