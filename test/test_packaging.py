@@ -17,6 +17,7 @@ PKG = "gcn_match_ros"
 EXECUTABLES = {  # console script -> module:function (must match setup.py)
     "gcn-match": "gcn_match_ros.cli:main",
     "matcher_node": "gcn_match_ros.ros.matcher_node:main",
+    "lifecycle_matcher_node": "gcn_match_ros.ros.matcher_node:lifecycle_main",
     "feature_node": "gcn_match_ros.ros.feature_node:main",
     "bag_play": "gcn_match_ros.ros.bag_play:main",
     "bag_record": "gcn_match_ros.ros.bag_record:main",

@@ -21,6 +21,12 @@ Threading:
     and the node goes on. A solver that cannot be created (unknown name, missing or
     corrupt checkpoint) stops the process at start-up with exit code 1.
 
+Two nodes share this one implementation: :class:`MatcherNode` (``matcher_node``) is configured
+and active from start-up; :class:`LifecycleMatcherNode` (``lifecycle_matcher_node``) is a
+managed node — configure loads and warms up the model and validates the parameters (a failure
+leaves it unconfigured, the reason logged), activate subscribes and publishes, deactivate stops
+matching and keeps the model, cleanup / shutdown release everything.
+
 Run::
 
     python -m gcn_match_ros.ros.matcher_node --ros-args -p cameras:='[cam0, cam1, cam2]' \\
@@ -38,6 +44,8 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.lifecycle import LifecycleState, TransitionCallbackReturn
+from rclpy.lifecycle import Node as LifecycleNode
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
@@ -55,7 +63,7 @@ from .conversions import MatchWindowError, result_to_match_window, validate_matc
 from .diagnostics import MatcherStats
 from .spin import run_node
 
-__all__ = ["MatcherNode", "StartupError", "create_solver", "main"]
+__all__ = ["MatcherNode", "LifecycleMatcherNode", "StartupError", "create_solver", "main", "lifecycle_main"]
 
 NODE_NAME = "matcher_node"
 _THROTTLE_S = 5.0
@@ -120,28 +128,20 @@ def _dims_text(dims: Tuple[int, ...]) -> str:
     return " or ".join(str(d) for d in dims)
 
 
-class MatcherNode(Node):
-    """See the module docstring. ``**kwargs`` go to :class:`rclpy.node.Node` (``context``,
-    ``parameter_overrides``, ``namespace``, ...).
+class _Matcher:
+    """The matcher's whole behaviour, in life-cycle steps shared by :class:`MatcherNode` (all
+    steps at construction) and :class:`LifecycleMatcherNode` (each step a transition).
+    Mixed into an rclpy node class; parameters are declared by :meth:`_declare`."""
 
-    Raises:
-        StartupError: invalid parameters or a solver that cannot be created.
-    """
-
-    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
-        super().__init__(node_name, **kwargs)
-        try:
-            self._setup()
-        except StartupError:
-            self.destroy_node()
-            raise
-        except Exception as exc:  # e.g. a parameter override of the wrong type
-            self.destroy_node()
-            raise StartupError(f"{type(exc).__name__}: {exc}") from None
-
-    # -- set-up -------------------------------------------------------------------------
-    def _setup(self) -> None:
+    def _declare(self) -> None:
         parameters.declare(self)
+        self._worker: Optional[threading.Thread] = None
+        self._subs: list = []
+        self._solver = None
+
+    # -- configure: validate parameters, load and warm up the solver ------------------------
+    def _configure(self) -> None:
+        """Raises StartupError (invalid parameters, a solver that cannot be created or run)."""
         p = parameters.values(self)
         cameras = [str(c) for c in p["cameras"]]
         if len(cameras) < 2:
@@ -157,8 +157,13 @@ class MatcherNode(Node):
         device = p["device"]
         if not (device == "cpu" or device == "cuda" or device.startswith("cuda:")):
             raise StartupError(f"parameter device='{device}': must be 'cpu', 'cuda' or 'cuda:<index>'")
+        for cam in self._cameras:
+            if not cam or not all(ch.isalnum() or ch in "_/~{}" for ch in cam) or cam[0].isdigit():
+                raise StartupError(f"camera id '{cam}' does not make a valid topic name")
         self._score_threshold = float(p["score_threshold"])
         self._dense_output = bool(p["dense_output"])
+        self._input_qos = p["input_qos"]
+        self._diagnostics_period = float(p["diagnostics_period"])
 
         t0 = time.perf_counter()
         self._solver = create_solver(p["solver"], p["checkpoint"], device)
@@ -182,13 +187,18 @@ class MatcherNode(Node):
         self._pending: Optional[_Job] = None
         self._busy = False
         self._stopping = False
+        if not getattr(self, "_parameters_watched", False):
+            self.add_on_set_parameters_callback(self._on_set_parameters)
+            self._parameters_watched = True
 
+    # -- activate: publishers, subscriptions, diagnostics, the worker -----------------------
+    def _activate(self) -> None:
         self._matches_pub = self.create_publisher(
             MatchWindow, "~/matches",
             QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE))
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        qos = qos_profile_sensor_data if p["input_qos"] == "sensor_data" else QoSProfile(
+        qos = qos_profile_sensor_data if self._input_qos == "sensor_data" else QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self._subs = []
         for cam in self._cameras:
@@ -197,16 +207,41 @@ class MatcherNode(Node):
                     Keypoints, f"{cam}/keypoints", lambda msg, cam=cam: self._on_keypoints(msg, cam), qos))
             except Exception as exc:  # invalid topic name
                 raise StartupError(f"camera id '{cam}' does not make a valid topic name: {exc}") from None
-        self._diagnostics_period = float(p["diagnostics_period"])
         self._diag_timer = self.create_timer(self._diagnostics_period, self._publish_diagnostics)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        with self._cv:
+            self._stopping = False
         self._worker = threading.Thread(target=self._worker_loop, name="matcher-inference", daemon=True)
         self._worker.start()
+        config = self._assembler.config
         self.get_logger().info(
-            f"matching cameras {list(self._cameras)} ({p['input_qos']} input: "
+            f"matching cameras {list(self._cameras)} ({self._input_qos} input: "
             f"{', '.join(s.topic_name for s in self._subs)}) -> {self._matches_pub.topic_name}; "
             f"sync_tolerance {config.sync_tolerance} s, max_delay {config.max_delay} s, "
             f"min_views {config.min_views}, max_age {config.max_age} s, max_keypoints {config.max_keypoints}")
+
+    # -- deactivate: stop matching, keep the model ------------------------------------------
+    def _deactivate(self) -> bool:
+        """Stop input, the worker (after its current window) and the outputs; True if the
+        worker has ended. The solver and its stream state stay loaded."""
+        stopped = self.stop()
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
+        self.destroy_timer(self._diag_timer)
+        self.destroy_publisher(self._matches_pub)
+        self.destroy_publisher(self._diag_pub)
+        return stopped
+
+    # -- cleanup: release the model ------------------------------------------------------------
+    def _cleanup(self) -> None:
+        self._solver = None
+        self._stream = None
+        self._assembler = None
+
+    @property
+    def solver_loaded(self) -> bool:
+        return self._solver is not None
+
 
     def _window_config(self, values: dict) -> WindowConfig:
         return WindowConfig(cameras=self._cameras, **values)
@@ -232,6 +267,8 @@ class MatcherNode(Node):
     def _on_set_parameters(self, params) -> SetParametersResult:
         """Validate (and apply) run-time changes; ranges and read-only are checked by rclpy."""
         changes = {p.name: p.value for p in params}
+        if getattr(self, "_assembler", None) is None:  # unconfigured: configure validates them
+            return SetParametersResult(successful=True)
         window = {k: v for k, v in changes.items() if k in parameters.WINDOW_PARAMETER_NAMES}
         new_config = None
         if window:
@@ -406,6 +443,8 @@ class MatcherNode(Node):
     # -- shutdown -------------------------------------------------------------------------
     def stop(self, timeout: float = 10.0) -> bool:
         """Stop the worker (after the window it is computing); True if it has ended."""
+        if self._worker is None:
+            return True
         with self._cv:
             self._stopping = True
             self._pending = None
@@ -419,6 +458,75 @@ class MatcherNode(Node):
         super().destroy_node()
 
 
+class MatcherNode(_Matcher, Node):
+    """See the module docstring: configured and active from construction. ``**kwargs`` go to
+    :class:`rclpy.node.Node` (``context``, ``parameter_overrides``, ``namespace``, ...).
+
+    Raises:
+        StartupError: invalid parameters or a solver that cannot be created.
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        try:
+            self._declare()
+            self._configure()
+            self._activate()
+        except StartupError:
+            self.destroy_node()
+            raise
+        except Exception as exc:  # e.g. a parameter override of the wrong type
+            self.destroy_node()
+            raise StartupError(f"{type(exc).__name__}: {exc}") from None
+
+
+class LifecycleMatcherNode(_Matcher, LifecycleNode):
+    """The matcher as a managed node (the life cycle of heavy perception nodes):
+
+    - configure: validate the parameters, load and warm up the model; an error leaves the node
+      unconfigured and logs the reason;
+    - activate: create the publishers and subscriptions, start matching;
+    - deactivate: stop matching (subscriptions and outputs gone) and keep the model;
+    - cleanup / shutdown: release everything.
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        self._declare()
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self._configure()
+        except Exception as exc:
+            self._solver = None
+            self.get_logger().error(f"configure failed: {type(exc).__name__}: {exc}")
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            self._activate()
+        except StartupError as exc:
+            self.get_logger().error(f"activate failed: {exc}")
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if not self._deactivate():
+            self.get_logger().warning("inference worker still busy after deactivate")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self._worker is not None and self._worker.is_alive():
+            self._deactivate()
+        self._cleanup()
+        return TransitionCallbackReturn.SUCCESS
+
+
 def main(args=None) -> int:
     """Console script ``matcher_node``; returns the exit status (1: could not start).
 
@@ -430,6 +538,17 @@ def main(args=None) -> int:
             rclpy.logging.get_logger(NODE_NAME).warning("inference worker still busy at shutdown")
 
     return run_node(MatcherNode, NODE_NAME, args, start_errors=(StartupError,), on_shutdown=stop_worker)
+
+
+
+def lifecycle_main(args=None) -> int:
+    """Console script ``lifecycle_matcher_node``: the managed matcher, unconfigured until a
+    lifecycle manager (or ``ros2 lifecycle set``) configures and activates it."""
+    def release(node: "LifecycleMatcherNode") -> None:
+        if node._worker is not None and not node.stop():
+            rclpy.logging.get_logger(NODE_NAME).warning("inference worker still busy at shutdown")
+
+    return run_node(LifecycleMatcherNode, NODE_NAME, args, start_errors=(StartupError,), on_shutdown=release)
 
 
 if __name__ == "__main__":
