@@ -47,6 +47,7 @@ from ..metrics import score_result
 from ..problem import Problem, Result
 from ..solvers.gcn import DEFAULT_CHECKPOINT
 from ..stamps import stamp_to_ns
+from ..track_image import draw_tracks
 from ..windowing import WindowConfig
 from .conversions import match_window_to_arrays
 from .dds import FASTDDS_PROFILE_ENV, use_large_shm
@@ -165,54 +166,33 @@ def score_window(msg, col: _Collector, contents) -> Optional[dict]:
 
 
 def draw_windows(rows: List[dict], out: Path, data_root: Path, height: int = 260) -> str:
-    """One row per window, its views side by side; lines join consecutive keypoints of each track
-    (green: same ground-truth point, red: different points, yellow: not labelled).
-    Returns what the views are drawn on."""
+    """One row per window, its views side by side (:func:`gcn_match_ros.track_image.draw_tracks`);
+    lines join consecutive keypoints of each track (green: same ground-truth point, red:
+    different points, yellow: not labelled). Returns what the views are drawn on."""
     on_images = True
     row_imgs = []
     for k, r in enumerate(rows):
-        w = r["arrays"]
-        tiles, scales, xoff = [], [], [0]
-        for v, kp in enumerate(r["keypoints"]):
-            img = None
-            src = r["sources"][v]
-            if src and (data_root / src).is_file():
-                img = cv2.imread(str(data_root / src), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                on_images = False
-                wd, ht = int(kp.camera_info.width) or 640, int(kp.camera_info.height) or 480
-                img = np.full((ht, wd), 40, np.uint8)
-            else:
-                img = (img * 0.6).astype(np.uint8)  # dim the image so the lines stand out
-            s = height / img.shape[0]
-            tile = cv2.cvtColor(cv2.resize(img, (int(round(img.shape[1] * s)), height)), cv2.COLOR_GRAY2BGR)
-            tiles.append(tile)
-            scales.append(s)
-            xoff.append(xoff[-1] + tile.shape[1] + 6)
-        canvas = np.full((height + 30, xoff[-1] - 6, 3), 255, np.uint8)
-        for v, tile in enumerate(tiles):
-            canvas[30:, xoff[v]:xoff[v] + tile.shape[1]] = tile
-        pts = np.concatenate([np.frombuffer(kp.keypoints, np.float32).reshape(-1, 2) * scales[v]
-                              + [xoff[v], 30] for v, kp in enumerate(r["keypoints"])])
-        for p in pts:
-            cv2.circle(canvas, (int(p[0]), int(p[1])), 1, (170, 170, 170), -1, cv2.LINE_AA)
-        gt = r["gt"]
+        w, gt = r["arrays"], r["gt"]
+        images, sizes = [], []
+        for kp, src in zip(r["keypoints"], r["sources"]):
+            img = cv2.imread(str(data_root / src), cv2.IMREAD_GRAYSCALE) if src and (data_root / src).is_file() else None
+            on_images &= img is not None
+            images.append(img)
+            sizes.append((int(kp.camera_info.width) or 640, int(kp.camera_info.height) or 480))
         counts = collections.Counter()
-        for t in range(w.track_count):
-            members = np.flatnonzero(w.track == t)  # in view order (global rows are view-major)
-            for a, b in zip(members[:-1], members[1:]):
-                if gt[a] == -2 or gt[b] == -2:
-                    color, kind = (0, 200, 230), "unlabelled"
-                elif gt[a] >= 0 and gt[a] == gt[b]:
-                    color, kind = (60, 200, 60), "correct"
-                else:
-                    color, kind = (40, 40, 230), "wrong"
-                counts[kind] += 1
-                cv2.line(canvas, tuple(int(x) for x in pts[a]), tuple(int(x) for x in pts[b]), color, 1, cv2.LINE_AA)
+
+        def by_truth(t: int, a: int, b: int) -> tuple:
+            kind = ("unlabelled" if gt[a] == -2 or gt[b] == -2 else
+                    "correct" if gt[a] >= 0 and gt[a] == gt[b] else "wrong")
+            counts[kind] += 1
+            return {"unlabelled": (0, 200, 230), "correct": (60, 200, 60), "wrong": (40, 40, 230)}[kind]
+
+        kps = [np.frombuffer(kp.keypoints, np.float32).reshape(-1, 2) for kp in r["keypoints"]]
+        canvas = draw_tracks(images, kps, w.track, image_sizes=sizes, height=height, link_color=by_truth)
         names = " | ".join(f"{c}: {Path(s).name or '?'}" for c, s in zip(w.camera_ids, r["sources"]))
         title = (f"window {k + 1}  P {r['P']:.2f}  R {r['R']:.2f}  F1 {r['F1']:.2f}   lines: "
                  f"{counts['correct']} correct, {counts['wrong']} wrong, {counts['unlabelled']} unlabelled   ({names})")
-        cv2.putText(canvas, title, (4, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(canvas, title, (4, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         row_imgs.append(canvas)
     width = max(r.shape[1] for r in row_imgs)
     what = "dataset images" if on_images else "blank canvases of the image size (images not found)"
