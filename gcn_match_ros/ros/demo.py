@@ -85,6 +85,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bag", default=DEFAULT_BAG, help=f"bag file (path, or a name in bags/; default {DEFAULT_BAG})")
     p.add_argument("--solver", default="gcn", help="matching method, e.g. gcn, nn, spectral, 'nn:graph=mutual'")
     p.add_argument("--checkpoint", default="", help="GCN checkpoint (default: the model shipped in the package)")
+    p.add_argument("--params-file", type=Path, default=None,
+                   help="matcher parameter file (default: the package's config/matcher.yaml); the demo's own "
+                        "settings (cameras of the bag, solver, reliable input) override it")
     p.add_argument("--rate", type=float, default=1.0, help="bag playback rate (default 1: real time)")
     p.add_argument("--out", type=Path, default=None, help="picture path (default out/demo_matches.png)")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT,
@@ -163,6 +166,19 @@ def score_window(msg, col: _Collector, contents) -> Optional[dict]:
     s = score_result(problem, result)
     return {"P": s["P"], "R": s["R"], "F1": s["F1"], "AP": s["AP"], "arrays": w, "gt": gt,
             "keypoints": kps, "sources": sources, "true_pairs": s["true_pairs"]}
+
+
+def default_params_file() -> Optional[Path]:
+    """config/matcher.yaml of this checkout, else of the installed package, else None."""
+    here = REPO / "config" / "matcher.yaml"
+    if here.is_file():
+        return here
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+        installed = Path(get_package_share_directory("gcn_match_ros")) / "config" / "matcher.yaml"
+    except (ImportError, PackageNotFoundError, ValueError):
+        return None
+    return installed if installed.is_file() else None
 
 
 def draw_windows(rows: List[dict], out: Path, data_root: Path, height: int = 260) -> str:
@@ -263,15 +279,19 @@ def main(argv=None) -> int:
     node_log = out.parent / "demo_matcher_node.log"
     out.parent.mkdir(parents=True, exist_ok=True)
 
-    cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args",
-           "-p", f"cameras:=[{','.join(cameras)}]", "-p", f"solver:={args.solver}",
+    params_file = args.params_file or default_params_file()
+    cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args"]
+    if params_file is not None:
+        cmd += ["--params-file", str(params_file)]
+    cmd += ["-p", f"cameras:=[{','.join(cameras)}]", "-p", f"solver:={args.solver}",
            "-p", "diagnostics_period:=0.5",
            # The replay is reliable and should be scored whole: best-effort (sensor_data) input
            # can lose a fragmented ~200 KB Keypoints message now and then.
            "-p", "input_qos:=reliable"]
     if args.checkpoint:
         cmd += ["-p", f"checkpoint:={args.checkpoint}"]
-    _log(f"demo: starting the matcher node (ROS_DOMAIN_ID={domain}, log: {node_log})")
+    _log(f"demo: starting the matcher node (parameters: {params_file or 'defaults'} + the demo's; "
+         f"ROS_DOMAIN_ID={domain}, log: {node_log})")
     log_fh = open(node_log, "w")
     node = subprocess.Popen(cmd, env=env, stdout=log_fh, stderr=subprocess.STDOUT, cwd=REPO)
     col = None
