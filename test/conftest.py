@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import os
 import random
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -17,8 +18,16 @@ import pytest
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"  # no traffic leaves the machine
 os.environ.pop("ROS_LOCALHOST_ONLY", None)
+# ROS logs of the test nodes go to a directory of this run, removed when it ends (one given in
+# ROS_LOG_DIR is the caller's and stays)
+_OWN_LOG_DIR = None
 if not os.environ.get("ROS_LOG_DIR"):
-    os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="gcn_match_ros-test-roslog-")
+    _OWN_LOG_DIR = os.environ["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix="gcn_match_ros-test-roslog-")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _OWN_LOG_DIR is not None:
+        shutil.rmtree(_OWN_LOG_DIR, ignore_errors=True)
 
 from gcn_match_ros.data import synthetic  # noqa: E402
 from gcn_match_ros.graph import CorrespondenceGraph, GraphConfig, build_graph  # noqa: E402
