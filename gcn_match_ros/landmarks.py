@@ -97,27 +97,37 @@ class LandmarkTracker:
                 near = np.linalg.norm(keypoints[rows, None, :] - np.nan_to_num(last)[None], axis=2) <= cfg.gate_px
                 need[rows] = np.where(seen[None], np.where(near, cfg.min_similarity, np.inf), cfg.cross_similarity)
             score = np.where(sim >= need, sim, -np.inf)
-            for u, members in enumerate(units):
-                s = score[members].max(axis=0)                          # (L,) best member per landmark
-                order = np.argsort(-s)
-                first = s[order[0]]
-                if not np.isfinite(first):
-                    continue
-                second = s[order[1]] if L > 1 and np.isfinite(s[order[1]]) else -1.0
-                if _dist(first) < cfg.ratio * _dist(second) or second < 0:
-                    best_lm[u], best_score[u] = order[0], first
+            # each unit's best member per landmark, all units at once: rows grouped by unit
+            rows = np.concatenate(units)
+            starts = np.cumsum([0] + [m.size for m in units[:-1]])
+            unit_score = np.maximum.reduceat(score[rows], starts, axis=0)    # (U, L)
+            first_lm = unit_score.argmax(1)
+            first = unit_score[np.arange(len(units)), first_lm]
+            if L > 1:
+                second = np.partition(unit_score, L - 2, axis=1)[:, L - 2]
+            else:
+                second = np.full(len(units), -np.inf)
+            second = np.where(np.isfinite(second), second, -1.0)
+            d_first = np.sqrt(np.maximum(2.0 - 2.0 * first, 0.0))
+            d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
+            ok = np.isfinite(first) & ((d_first < cfg.ratio * d_second) | (second < 0))
+            best_lm = np.where(ok, first_lm, -1)
+            best_score = np.where(ok, first, 0.0)
         ids = np.full(n, -1, np.int64)
         taken = set()
+        continued = []  # (unit, landmark)
         for u in np.argsort(-best_score, kind="stable"):
             members = units[u]
             j = int(best_lm[u])
             if j >= 0 and j not in taken:
                 taken.add(j)
-                self._sighted(j, members, camera_ids, view, keypoints, desc, stamp_ns)
+                continued.append((u, j))
                 ids[members] = self._ids[j]
             elif members.size >= 2:  # a track: a new point
                 j = self._found(members, camera_ids, view, keypoints, desc, stamp_ns)
                 ids[members] = self._ids[j]
+        if continued:
+            self._sighted(continued, units, camera_ids, view, keypoints, desc, stamp_ns)
         born_of = dict(zip(self._ids.tolist(), self._born_ns.tolist()))
         ages = np.array([stamp_ns - born_of[i] if i >= 0 else -1 for i in ids.tolist()], np.int64)
         return ids, ages
@@ -146,14 +156,19 @@ class LandmarkTracker:
         self._born_ns, self._seen_ns = self._born_ns[keep], self._seen_ns[keep]
         self._xy = self._xy[keep]
 
-    def _sighted(self, j, members, camera_ids, view, keypoints, desc, stamp_ns) -> None:
+    def _sighted(self, continued, units, camera_ids, view, keypoints, desc, stamp_ns) -> None:
+        """Update the landmarks ``continued`` ((unit, landmark) pairs) with their units, at once."""
         w = self.config.summary_weight
-        mean = (1 - w) * self._desc[j] + w * desc[members].mean(0)
-        self._desc[j] = mean / max(float(np.linalg.norm(mean)), 1e-12)
-        self._seen_ns[j] = stamp_ns
-        self._xy[j] = np.nan
-        for m in members.tolist():
-            self._xy[j, self._cams[camera_ids[view[m]]]] = keypoints[m]
+        us, js = (np.array(x, np.int64) for x in zip(*continued))
+        rows = np.concatenate([units[u] for u in us])
+        sizes = np.array([units[u].size for u in us])
+        unit_mean = np.add.reduceat(desc[rows], np.cumsum(np.r_[0, sizes[:-1]]), axis=0) / sizes[:, None]
+        mean = (1 - w) * self._desc[js] + w * unit_mean
+        self._desc[js] = mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+        self._seen_ns[js] = stamp_ns
+        self._xy[js] = np.nan
+        column = np.array([self._cams[c] for c in camera_ids])
+        self._xy[np.repeat(js, sizes), column[view[rows]]] = keypoints[rows]
 
     def _found(self, members, camera_ids, view, keypoints, desc, stamp_ns) -> int:
         mean = desc[members].mean(0)
@@ -181,10 +196,6 @@ def _units(track: np.ndarray) -> List[np.ndarray]:
     ends = np.r_[starts[1:], np.flatnonzero(in_track)[-1] + 1] if starts.size else starts
     units = [order[s:e] for s, e in zip(starts, ends)]
     return units + [np.array([i]) for i in np.flatnonzero(track < 0)]
-
-
-def _dist(cos: float) -> float:
-    return float(np.sqrt(max(2.0 - 2.0 * cos, 0.0)))
 
 
 def per_camera_nn_ids(previous: Tuple[List[np.ndarray], List[np.ndarray], np.ndarray], camera_ids: Sequence[str],
