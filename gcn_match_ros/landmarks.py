@@ -94,7 +94,9 @@ class LandmarkTracker:
                 seen = ~np.isnan(last[:, 0])
                 # seen by this camera: only a nearby keypoint continues it, at the usual similarity;
                 # not seen by it: the point moved in from another camera, a higher similarity
-                near = np.linalg.norm(keypoints[rows, None, :] - np.nan_to_num(last)[None], axis=2) <= cfg.gate_px
+                kx, ky = keypoints[rows, 0:1].astype(np.float32), keypoints[rows, 1:2].astype(np.float32)
+                lx, ly = np.nan_to_num(last[:, 0]).astype(np.float32), np.nan_to_num(last[:, 1]).astype(np.float32)
+                near = (kx - lx) ** 2 + (ky - ly) ** 2 <= np.float32(cfg.gate_px ** 2)
                 need[rows] = np.where(seen[None], np.where(near, cfg.min_similarity, np.inf), cfg.cross_similarity)
             score = np.where(sim >= need, sim, -np.inf)
             # each unit's best member per landmark, all units at once: rows grouped by unit

@@ -3,18 +3,25 @@
 A matcher node, and an offline replay of the same bag, solve a *stream* of windows. Anything
 learnt from earlier windows lives in one :class:`StreamState` per stream and is used in window
 order, so the node and the offline path (:func:`solve_stream`) give the same answers for the
-same windows. Today that is the rig memory (:mod:`gcn_match_ros.edges.rig_memory`): the
-two-view models of camera pairs, re-checked on every window and re-fitted only when they fail.
+same windows:
+
+- the rig memory (:mod:`gcn_match_ros.edges.rig_memory`): the two-view models of camera pairs,
+  re-checked on every window and re-fitted only when they fail;
+- the landmarks (:mod:`gcn_match_ros.landmarks`): ids of 3-D points that persist across
+  windows (:func:`solve_window` gives every keypoint its landmark).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Iterator
+from typing import Iterable, Iterator, Optional, Sequence, Tuple
+
+import numpy as np
 
 from .edges.rig_memory import RigMemory
+from .landmarks import LandmarkTracker
 from .problem import Problem, Result
 
-__all__ = ["StreamState", "solve_stream"]
+__all__ = ["StreamState", "WindowLandmarks", "solve_window", "solve_stream"]
 
 
 @dataclasses.dataclass
@@ -23,19 +30,50 @@ class StreamState:
 
     Attributes:
         rig: two-view models by camera pair (windows whose problems name their cameras).
+        landmarks: the live landmarks and their ids.
     """
 
     rig: RigMemory = dataclasses.field(default_factory=RigMemory)
+    landmarks: LandmarkTracker = dataclasses.field(default_factory=LandmarkTracker)
 
 
-def solve_stream(solver, problems: Iterable[Problem], state: StreamState = None) -> Iterator[Result]:
-    """Solve ``problems`` in order as one stream (what the node does with its windows).
+@dataclasses.dataclass
+class WindowLandmarks:
+    """The landmark of every keypoint of one window.
+
+    Shapes: ids (N,) int64 (-1: none); ages_ns (N,) int64 nanoseconds since the landmark was
+    first seen (-1: none).
+    """
+
+    ids: np.ndarray
+    ages_ns: np.ndarray
+
+
+def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int) -> Tuple[Result, WindowLandmarks]:
+    """Solve one window of a stream (rig memory) and give its keypoints their landmarks.
 
     Args:
         solver: a :class:`gcn_match_ros.solvers.base.Solver`.
-        problems: the windows, in stream order.
+        stamp_ns: the window's capture time (its newest view stamp), for landmark ages and
+            retirement. A problem without ``camera_ids`` gets no landmarks (all -1).
+    """
+    result = solver.solve(problem, stream=state)
+    if problem.camera_ids is None:
+        none = np.full(problem.n_keypoints, -1, np.int64)
+        return result, WindowLandmarks(none, none.copy())
+    ids, ages = state.landmarks.update(problem.camera_ids, problem.view_offsets, problem.keypoints,
+                                      problem.descriptors, result.track, int(stamp_ns))
+    return result, WindowLandmarks(ids, ages)
+
+
+def solve_stream(solver, problems: Iterable[Problem], stamps_ns: Sequence[int],
+                 state: Optional[StreamState] = None) -> Iterator[Tuple[Result, WindowLandmarks]]:
+    """Solve ``problems`` in order as one stream, what the node does with its windows.
+
+    Args:
+        problems: the windows, in stream order; stamps_ns: their capture times.
         state: the stream's state (a new one if None).
     """
     state = state if state is not None else StreamState()
-    for problem in problems:
-        yield solver.solve(problem, stream=state)
+    for problem, stamp in zip(problems, stamps_ns):
+        yield solve_window(solver, problem, state, stamp)

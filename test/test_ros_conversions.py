@@ -139,3 +139,22 @@ def test_match_window_shapes_tracks_and_pairs():
     broken.track = array.array("i", [0] * (n - 1))
     with pytest.raises(MatchWindowError):
         match_window_to_arrays(broken)
+
+
+def test_landmark_fields_round_trip_and_are_validated():
+    frames = [PermutedScene(points=6, dim=8, distractors=0, seed=s).frame(f"cam{s}", 1.0 + s)[0] for s in range(2)]
+    track = np.r_[np.arange(6), np.arange(6)]
+    result = Result(track=track, pair_rows=np.zeros(0, np.int64), pair_cols=np.zeros(0, np.int64),
+                    pair_scores=np.zeros(0, np.float32))
+    ids = np.r_[np.arange(6) + 100, np.arange(6) + 100]
+    ids[0] = ids[6] = -1
+    msg = result_to_match_window(frames, result, landmark_ids=ids, landmark_ages=np.full(12, 2.5))
+    w = match_window_to_arrays(msg)
+    np.testing.assert_array_equal(w.landmark_ids, ids)
+    assert w.landmark_ages[0] == -1.0 and w.landmark_ages[1] == 2.5
+    assert match_window_to_arrays(result_to_match_window(frames, result)).landmark_ids is None
+    with pytest.raises(MatchWindowError, match="landmarks"):
+        result_to_match_window(frames, result, landmark_ids=ids[:5], landmark_ages=np.zeros(5))
+    msg.landmark_ages = msg.landmark_ages[:3]
+    with pytest.raises(MatchWindowError, match="landmark_ids / landmark_ages"):
+        validate_match_window(msg)

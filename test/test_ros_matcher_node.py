@@ -148,8 +148,9 @@ def _solvers_under_test():
 
 def test_matcher_reuses_the_rigs_models_and_answers_as_offline(harness_factory):
     """A fixed rig: the node fits each camera pair's model once and re-checks it afterwards
-    (diagnostics count it), and solving the same windows offline as one stream
-    (gcn_match_ros.stream.solve_stream) gives the node's tracks exactly."""
+    (diagnostics count it), gives the scene's points landmark ids that persist from window to
+    window, and solving the same windows offline as one stream (gcn_match_ros.stream.solve_stream)
+    gives the node's tracks and landmark ids exactly."""
     from gcn_match_ros import solvers
     from gcn_match_ros.data import synthetic
     from gcn_match_ros.stream import solve_stream
@@ -173,9 +174,19 @@ def test_matcher_reuses_the_rigs_models_and_answers_as_offline(harness_factory):
         h.wait_windows(k + 1)
     _, values = h.wait_diag(lambda v: int(v.get("rig models reused", 0)) > 0)
     assert int(values["rig models fitted"]) < 3 * 3  # three view pairs, three windows: not every one fitted
-    offline = list(solve_stream(solvers.create("gcn"), [window_problem(frames) for frames in sent]))
-    for msg, result in zip(h.windows, offline):
-        np.testing.assert_array_equal(match_window_to_arrays(msg).track, result.track)
+    offline = list(solve_stream(solvers.create("gcn"), [window_problem(frames) for frames in sent],
+                                stamps_ns=[max(f.stamp_ns for f in frames) for frames in sent]))
+    online = [match_window_to_arrays(msg) for msg in h.windows]
+    for w, (result, landmarks) in zip(online, offline):
+        np.testing.assert_array_equal(w.track, result.track)
+        np.testing.assert_array_equal(w.landmark_ids, landmarks.ids)
+        np.testing.assert_allclose(w.landmark_ages, np.where(landmarks.ids >= 0, landmarks.ages_ns * 1e-9, -1), atol=1e-6)
+    # the same scene in every window: the tracked points keep their ids, and age
+    first, last = online[0], online[-1]
+    tracked = first.landmark_ids >= 0
+    assert tracked.sum() > 50
+    assert (last.landmark_ids[tracked] == first.landmark_ids[tracked]).mean() > 0.95
+    assert np.all(last.landmark_ages[tracked & (last.landmark_ids == first.landmark_ids)] > 0)
 
 
 @pytest.mark.parametrize("solver", _solvers_under_test())

@@ -56,7 +56,7 @@ class MatchWindowError(ValueError):
 # Small helpers
 # ---------------------------------------------------------------------------------------
 _TYPECODES = {np.dtype(np.float32): "f", np.dtype(np.float64): "d", np.dtype(np.uint8): "B",
-              np.dtype(np.int32): "i", np.dtype(np.uint32): "I"}
+              np.dtype(np.int32): "i", np.dtype(np.uint32): "I", np.dtype(np.int64): "q"}
 
 
 def _seq(a, dtype) -> array.array:
@@ -106,7 +106,9 @@ def frame_to_keypoints(frame: Frame, camera_info: Optional[CameraInfo] = None) -
 def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_threshold: float = 0.0,
                            dense: bool = False, build_seconds: float = 0.0, solve_seconds: float = 0.0,
                            total_seconds: float = 0.0, latency_seconds: float = 0.0,
-                           method: Optional[str] = None, frame_id: str = "") -> MatchWindow:
+                           method: Optional[str] = None, frame_id: str = "",
+                           landmark_ids: Optional[np.ndarray] = None,
+                           landmark_ages: Optional[np.ndarray] = None) -> MatchWindow:
     """The MatchWindow of one solved window (views in ``frames`` order).
 
     Pairs with score > ``score_threshold`` go into the sparse COO fields. With ``dense`` and
@@ -114,6 +116,8 @@ def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_thr
     the result's pair scores (unthresholded) with 1 on the diagonal; above that size it stays
     empty. Track ids are renumbered 0..T-1 (keypoints alone in their track become -1).
     ``view_stamps`` are the frames' stamps, exactly; the header stamp is the newest of them.
+    ``landmark_ids`` (N,) and ``landmark_ages`` (N,) seconds: the window's persistent landmarks
+    (:func:`gcn_match_ros.stream.solve_window`), or None (the fields stay empty).
 
     Raises:
         MatchWindowError: the result does not fit the frames (never a wrong-shaped message).
@@ -146,6 +150,14 @@ def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_thr
     if keys.size != np.unique(keys).size:
         raise MatchWindowError("bad_result", "a track holds two keypoints of one view")
     scores = np.clip(scores, 0.0, 1.0)
+    if (landmark_ids is None) != (landmark_ages is None):
+        raise MatchWindowError("bad_result", "landmark_ids and landmark_ages go together")
+    if landmark_ids is not None:
+        landmark_ids = np.asarray(landmark_ids, np.int64)
+        landmark_ages = np.asarray(landmark_ages, np.float32)
+        if landmark_ids.shape != (n,) or landmark_ages.shape != (n,):
+            raise MatchWindowError("bad_result", f"landmarks: expected ({n},) ids and ages, got "
+                                                 f"{landmark_ids.shape}, {landmark_ages.shape}")
 
     msg = MatchWindow()
     msg.header.stamp = ns_to_time(max(f.stamp_ns for f in frames))
@@ -172,6 +184,9 @@ def result_to_match_window(frames: Sequence[Frame], result: Result, *, score_thr
     msg.solve_seconds = float(solve_seconds)
     msg.total_seconds = float(total_seconds)
     msg.latency_seconds = float(latency_seconds)
+    if landmark_ids is not None:
+        msg.landmark_ids = _seq(landmark_ids, np.int64)
+        msg.landmark_ages = _seq(np.where(landmark_ids >= 0, landmark_ages, -1.0), np.float32)
     return msg
 
 
@@ -215,6 +230,11 @@ def validate_match_window(msg: MatchWindow) -> None:
     nd = len(msg.dense_scores)
     if nd not in (0, n * n):
         raise MatchWindowError("bad_window", f"dense_scores: {nd} values, expected 0 or N*N={n * n}")
+    nl, na = len(msg.landmark_ids), len(msg.landmark_ages)
+    if nl != na or nl not in (0, n):
+        raise MatchWindowError("bad_window", f"landmark_ids / landmark_ages: {nl} / {na} values, expected 0 or N={n}")
+    if nl and message_array(msg.landmark_ids, np.int64).min() < -1:
+        raise MatchWindowError("bad_window", "landmark ids must be >= -1")
 
 
 # ---------------------------------------------------------------------------------------
@@ -231,6 +251,8 @@ class WindowArrays:
         track: (N,) int64 (-1 unmatched), track_count: T.
         pair_rows, pair_cols: (M,) int64 global rows; pair_scores: (M,) float32.
         dense_scores: (N, N) float32 or None.
+        landmark_ids: (N,) int64 persistent landmark ids (-1: none), landmark_ages: (N,)
+            float32 seconds; both None when the producer tracks no landmarks.
     """
 
     camera_ids: List[str]
@@ -249,6 +271,8 @@ class WindowArrays:
     method: str
     latency_seconds: float
     total_seconds: float
+    landmark_ids: Optional[np.ndarray] = None
+    landmark_ages: Optional[np.ndarray] = None
 
     @property
     def n_views(self) -> int:
@@ -280,7 +304,9 @@ def match_window_to_arrays(msg: MatchWindow, validate: bool = True) -> WindowArr
         pair_cols=message_array(msg.pair_cols, np.uint32).astype(np.int64),
         pair_scores=message_array(msg.pair_scores, np.float32).copy(),
         dense_scores=dense.reshape(n, n).copy() if dense.size and dense.size == n * n else None,
-        method=msg.method, latency_seconds=float(msg.latency_seconds), total_seconds=float(msg.total_seconds))
+        method=msg.method, latency_seconds=float(msg.latency_seconds), total_seconds=float(msg.total_seconds),
+        landmark_ids=message_array(msg.landmark_ids, np.int64).copy() if len(msg.landmark_ids) else None,
+        landmark_ages=message_array(msg.landmark_ages, np.float32).copy() if len(msg.landmark_ages) else None)
 
 
 def _as_arrays(window) -> WindowArrays:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import collections
 import sys
 
+import numpy as np
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -58,10 +59,14 @@ def summarize(msg: MatchWindow, min_score: float = 0.5) -> dict:
 
 
 class MatchConsumer(Node):
-    """Logs a summary of every received window (throttled); keeps the last one."""
+    """Logs a summary of every received window (throttled) and, when the producer tracks
+    persistent landmarks, their statistics: landmarks in the window, how many the previous
+    window had too, and their ages; keeps the last window."""
 
     def __init__(self, node_name: str = "match_consumer", **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.landmarks_seen = set()   # every landmark id so far (a mapping node would keep a map)
+        self._previous_landmarks = set()
         self.windows = 0
         self.malformed = 0
         self.last = None
@@ -80,7 +85,18 @@ class MatchConsumer(Node):
         self.last = summary
         # Use the data here: e.g. triangulate every track seen in >= 3 views.
         long_tracks = [t for t in summary["tracks"] if len(t) >= 3]
-        self.get_logger().info(f"{summary['text']}; {len(long_tracks)} tracks in >= 3 views "
+        w = summary["arrays"]
+        landmarks = ""
+        if w.landmark_ids is not None:
+            ids = w.landmark_ids[w.landmark_ids >= 0]
+            current = set(ids.tolist())
+            ages = w.landmark_ages[w.landmark_ids >= 0]
+            landmarks = (f"; landmarks: {len(current)} in the window, {len(current & self._previous_landmarks)} "
+                         f"continued, {len(current - self.landmarks_seen)} new, median age "
+                         f"{float(np.median(ages)) if ages.size else 0.0:.1f} s, {len(self.landmarks_seen | current)} so far")
+            self.landmarks_seen |= current
+            self._previous_landmarks = current
+        self.get_logger().info(f"{summary['text']}; {len(long_tracks)} tracks in >= 3 views{landmarks} "
                                f"[{self.windows} windows so far]", throttle_duration_sec=2.0)
 
 

@@ -56,7 +56,7 @@ from ..bags.codec import frame_from_keypoints_msg
 from ..descriptors import describe_descriptor_kind
 from ..problem import Problem
 from ..stamps import ns_to_seconds
-from ..stream import StreamState
+from ..stream import StreamState, solve_window
 from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
@@ -167,8 +167,9 @@ class _Matcher:
 
         t0 = time.perf_counter()
         self._solver = create_solver(p["solver"], p["checkpoint"], device)
-        # what the solver learns from earlier windows (the rig's two-view models); the worker
-        # thread alone solves, in window order, as gcn_match_ros.stream.solve_stream does offline
+        # what the stream learns from earlier windows (the rig's two-view models, the landmarks);
+        # the worker thread alone solves, in window order, as gcn_match_ros.stream.solve_stream
+        # does offline
         self._stream = StreamState()
         self._method = self._solver.describe()
         self._solver_kinds = tuple((int(d), bool(b)) for d, b in self._solver.descriptor_kinds)
@@ -396,7 +397,7 @@ class _Matcher:
             return
         stacked = time.perf_counter() - t0
         try:
-            result = self._solver.solve(problem, stream=self._stream)
+            result, landmarks = solve_window(self._solver, problem, self._stream, newest)
         except Exception as exc:
             self._drop_window("solver_error")
             self.get_logger().error(f"solver {self._method} failed on a window of {problem.n_views} views, "
@@ -407,7 +408,8 @@ class _Matcher:
         try:
             msg = result_to_match_window(frames, result, score_threshold=threshold, dense=dense,
                                          build_seconds=build, solve_seconds=stacked + result.seconds - build,
-                                         method=result.method or self._method)
+                                         method=result.method or self._method, landmark_ids=landmarks.ids,
+                                         landmark_ages=landmarks.ages_ns * 1e-9)
             validate_match_window(msg)
         except MatchWindowError as exc:
             self._drop_window("invalid_output")
@@ -432,7 +434,9 @@ class _Matcher:
                 self._assembler.descriptor_dim, busy, pending, stale_after=max(2.0 * self._diagnostics_period, 1.0),
                 extra={"solver": self._method, "rig models reused": str(self._stream.rig.reused),
                        "rig models fitted": str(self._stream.rig.fitted),
-                       "rig models invalidated": str(self._stream.rig.invalidated)})
+                       "rig models invalidated": str(self._stream.rig.invalidated),
+                       "landmarks live": str(len(self._stream.landmarks)),
+                       "landmarks born": str(self._stream.landmarks.born)})
         arr = DiagnosticArray(status=[status])
         arr.header.stamp = self.get_clock().now().to_msg()
         return arr
