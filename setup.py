@@ -45,6 +45,7 @@ setup(
             'lifecycle_matcher_node = gcn_match_ros.ros.matcher_node:lifecycle_main',
             'feature_node = gcn_match_ros.ros.feature_node:main',
             'visualizer_node = gcn_match_ros.ros.visualizer_node:main',
+            'mapping_node = gcn_match_ros.ros.mapping_node:main',
             'bag_play = gcn_match_ros.ros.bag_play:main',
             'bag_record = gcn_match_ros.ros.bag_record:main',
             'match_consumer = gcn_match_ros.ros.example_consumer:main',

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import collections
 import sys
-from typing import Deque, Dict, Optional, Tuple
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -28,11 +28,9 @@ from sensor_msgs.msg import CompressedImage, Image
 
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
-from ..bags.codec import frame_from_keypoints_msg
-from ..stamps import stamp_to_ns
 from ..track_image import draw_tracks
-from ..windowing import FrameError, kept_rows
 from .conversions import MatchWindowError, match_window_to_arrays
+from .frame_buffer import StampBuffer, window_frames
 from .spin import run_node
 
 __all__ = ["VisualizerNode", "main", "image_to_bgr"]
@@ -79,16 +77,15 @@ class VisualizerNode(Node):
         cameras = [str(c) for c in self.get_parameter("cameras").value]
         depth = max(int(self.get_parameter("buffer").value), 1)
         self._height = max(int(self.get_parameter("height").value), 16)
-        self._keypoints: Dict[str, Deque[Tuple[int, object]]] = {c: collections.deque(maxlen=depth) for c in cameras}
-        self._images: Dict[str, Deque[Tuple[int, object]]] = {c: collections.deque(maxlen=depth) for c in cameras}
+        self._keypoints, self._images = StampBuffer(cameras, depth), StampBuffer(cameras, depth)
         self._window: Optional[MatchWindow] = None
         self.counts = collections.Counter()
         image_type = CompressedImage if self.get_parameter("compressed").value else Image
         suffix = self.get_parameter("image").value + ("/compressed" if image_type is CompressedImage else "")
         for cam in cameras:
-            self.create_subscription(Keypoints, f"{cam}/keypoints", lambda m, c=cam: self._keep(self._keypoints, c, m),
+            self.create_subscription(Keypoints, f"{cam}/keypoints", lambda m, c=cam: self._keypoints.add(c, m),
                                      qos_profile_sensor_data)
-            self.create_subscription(image_type, f"{cam}/{suffix}", lambda m, c=cam: self._keep(self._images, c, m),
+            self.create_subscription(image_type, f"{cam}/{suffix}", lambda m, c=cam: self._images.add(c, m),
                                      qos_profile_sensor_data)
         self.create_subscription(MatchWindow, "matches", self._on_window, 10)
         self._pub = self.create_publisher(Image, "~/image", 2)
@@ -96,19 +93,12 @@ class VisualizerNode(Node):
         self.get_logger().info(f"drawing windows of {cameras} on {self._pub.topic_name}")
 
     # -- callbacks: buffer only -----------------------------------------------------------
-    def _keep(self, buffers, camera: str, msg) -> None:
-        buffers[camera].append((stamp_to_ns(msg.header.stamp), msg))
-
     def _on_window(self, msg: MatchWindow) -> None:
         if self._window is not None:
             self.counts["windows skipped"] += 1  # the previous one was never drawn: drawing is behind
         self._window = msg
 
     # -- drawing (timer) --------------------------------------------------------------------
-    @staticmethod
-    def _find(buffer, stamp_ns: int):
-        return next((m for s, m in reversed(buffer) if s == stamp_ns), None)
-
     def _draw_newest(self) -> None:
         msg, self._window = self._window, None
         if msg is None:
@@ -119,39 +109,25 @@ class VisualizerNode(Node):
             self.counts["invalid windows"] += 1
             self.get_logger().warning(f"skipped an invalid window: {exc}", throttle_duration_sec=_THROTTLE_S)
             return
-        images, keypoints, sizes = [], [], []
-        for v, (cam, stamp) in enumerate(zip(w.camera_ids, msg.view_stamps)):
-            ns = stamp_to_ns(stamp)
-            n_view = int(w.view_offsets[v + 1] - w.view_offsets[v])
-            kp_msg = self._find(self._keypoints.get(cam, ()), ns)
-            if kp_msg is None:
-                self.counts["windows without keypoints"] += 1
-                self.get_logger().warning(f"skipped a window: no keypoints of {cam} at its stamp {ns}",
-                                          throttle_duration_sec=_THROTTLE_S)
-                return
-            try:
-                frame = frame_from_keypoints_msg(kp_msg, camera_id=cam)
-            except FrameError as exc:
-                self.counts["windows without keypoints"] += 1
-                self.get_logger().warning(f"skipped a window: {exc}", throttle_duration_sec=_THROTTLE_S)
-                return
-            # the keypoints the matcher kept of that frame (windowing.kept_rows, the one rule)
-            keypoints.append(frame.keypoints[kept_rows(frame.count, frame.scores, n_view)])
-            if keypoints[-1].shape[0] != n_view:
-                self.counts["windows without keypoints"] += 1
-                return
-            sizes.append(frame.image_size)
-            image_msg = self._find(self._images.get(cam, ()), ns)
+        frames, why = window_frames(w, self._keypoints)
+        if frames is None:
+            self.counts["windows without keypoints"] += 1
+            self.get_logger().warning(f"skipped a window: {why}", throttle_duration_sec=_THROTTLE_S)
+            return
+        images = []
+        for f in frames:
+            image_msg = self._images.find(f.camera_id, f.stamp_ns)
             img = None
             if image_msg is not None:
                 try:
                     img = image_to_bgr(image_msg)
                 except ValueError as exc:
                     self.counts["bad images"] += 1
-                    self.get_logger().warning(f"{cam}: {exc}", throttle_duration_sec=_THROTTLE_S)
+                    self.get_logger().warning(f"{f.camera_id}: {exc}", throttle_duration_sec=_THROTTLE_S)
             else:
                 self.counts["views without image"] += 1
             images.append(img)
+        keypoints, sizes = [f.keypoints for f in frames], [f.image_size for f in frames]
         canvas = draw_tracks(images, keypoints, w.track, image_sizes=sizes, height=self._height,
                              title=f"{w.method}: {w.track_count} tracks over {len(images)} views")
         out = Image(header=msg.header, height=canvas.shape[0], width=canvas.shape[1], encoding="bgr8",

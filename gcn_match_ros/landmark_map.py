@@ -1,0 +1,114 @@
+"""A 3-D map of persistent landmarks: what a mapping node builds from the matcher's output.
+
+:class:`LandmarkMap` collects, per landmark id (:mod:`gcn_match_ros.landmarks`), its sightings
+— a pixel and the world→camera pose and intrinsics of the view it was seen in — and
+triangulates every landmark seen from two or more poses whose rays are not parallel
+(:func:`gcn_match_ros.geometry.triangulate_views`). A point is kept only when it lies in front
+of every camera and reprojects within ``max_reprojection_px`` into every sighting; otherwise
+the landmark stays unmapped (its matches were wrong, or the baseline is too short). Sightings
+are bounded per landmark (the latest ``max_sightings``), landmarks unseen for ``max_age_s``
+are dropped: the map follows the stream in bounded memory.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Dict, List, Tuple
+
+import numpy as np
+
+from .geometry import project, triangulate_views, unproject
+
+__all__ = ["LandmarkMap", "MapConfig"]
+
+
+@dataclasses.dataclass(frozen=True)
+class MapConfig:
+    max_reprojection_px: float = 3.0
+    min_parallax_deg: float = 1.0
+    max_sightings: int = 12
+    max_age_s: float = 5.0
+
+
+@dataclasses.dataclass
+class _Sighting:
+    xy: np.ndarray    # (2,) pixel
+    K: np.ndarray     # (3, 3)
+    R: np.ndarray     # (3, 3) world -> camera
+    t: np.ndarray     # (3,)
+
+
+class LandmarkMap:
+    """Landmark id -> triangulated world point (module docstring).
+
+    Attributes:
+        points: id -> (3,) world point of every mapped landmark.
+    """
+
+    def __init__(self, config: MapConfig = MapConfig()) -> None:
+        self.config = config
+        self._sightings: Dict[int, List[_Sighting]] = {}
+        self._seen_ns: Dict[int, int] = {}
+        self.points: Dict[int, np.ndarray] = {}
+
+    def add_window(self, landmark_ids: np.ndarray, keypoints: np.ndarray, view_index: np.ndarray,
+                   K: np.ndarray, R: np.ndarray, t: np.ndarray, stamp_ns: int) -> List[int]:
+        """Add one window's sightings and re-triangulate the landmarks it saw.
+
+        Args:
+            landmark_ids: (N,) per keypoint (-1: none); keypoints (N, 2) pixels; view_index (N,).
+            K, R, t: (V, 3, 3), (V, 3, 3), (V, 3) intrinsics and world→camera poses of the views.
+
+        Returns:
+            the ids whose point was (re)computed and kept.
+        """
+        cfg = self.config
+        seen = np.flatnonzero(np.asarray(landmark_ids) >= 0)
+        touched = set()
+        for i in seen.tolist():
+            lm, v = int(landmark_ids[i]), int(view_index[i])
+            s = self._sightings.setdefault(lm, [])
+            s.append(_Sighting(np.asarray(keypoints[i], np.float64), K[v], R[v], t[v]))
+            del s[:-cfg.max_sightings]
+            self._seen_ns[lm] = stamp_ns
+            touched.add(lm)
+        for lm in [k for k, ns in self._seen_ns.items() if stamp_ns - ns > cfg.max_age_s * 1e9]:
+            self._sightings.pop(lm, None)
+            self._seen_ns.pop(lm, None)
+            self.points.pop(lm, None)
+        mapped = []
+        for lm in sorted(touched):
+            X = self._triangulate(self._sightings[lm])
+            if X is None:
+                self.points.pop(lm, None)
+            else:
+                self.points[lm] = X
+                mapped.append(lm)
+        return mapped
+
+    def _triangulate(self, sightings: List[_Sighting]):
+        cfg = self.config
+        if len(sightings) < 2:
+            return None
+        centers = np.array([-s.R.T @ s.t for s in sightings])
+        rays = np.array([s.R.T @ unproject(s.K, s.xy[None])[0] for s in sightings])
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        parallax = np.degrees(np.arccos(np.clip(rays @ rays.T, -1.0, 1.0))).max()
+        if parallax < cfg.min_parallax_deg or np.ptp(centers, axis=0).max() <= 0:
+            return None
+        P = np.array([[np.hstack([s.R, s.t[:, None]]) for s in sightings]])
+        u = np.array([[unproject(s.K, s.xy[None])[0, :2] for s in sightings]])
+        X = triangulate_views(P, u)[0]
+        if not np.all(np.isfinite(X)):
+            return None
+        for s in sightings:
+            uv, z = project(s.K, s.R, s.t, X[None])
+            if z[0] <= 0 or np.linalg.norm(uv[0] - s.xy) > cfg.max_reprojection_px:
+                return None
+        return X
+
+    def arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(M,) ids, (M, 3) points and (M,) sighting counts of the mapped landmarks, id order."""
+        ids = np.array(sorted(self.points), np.int64)
+        pts = np.array([self.points[i] for i in ids.tolist()]).reshape(-1, 3)
+        counts = np.array([len(self._sightings[i]) for i in ids.tolist()], np.int64)
+        return ids, pts, counts

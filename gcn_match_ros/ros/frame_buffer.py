@@ -1,0 +1,55 @@
+"""The latest messages of each camera by stamp, and a window's keypoints found in them.
+
+Consumers of ``MatchWindow`` (the visualiser, the mapping node) need each view's keypoint
+coordinates, which travel in the ``Keypoints`` messages the window names by camera and exact
+stamp. :class:`StampBuffer` keeps the last few messages of every camera; :func:`window_frames`
+finds a window's frames there and cuts them to the keypoints the matcher kept
+(:func:`gcn_match_ros.windowing.kept_rows`, the one rule).
+"""
+from __future__ import annotations
+
+import collections
+from typing import Deque, Dict, List, Optional, Sequence, Tuple
+
+from ..bags.codec import frame_from_keypoints_msg
+from ..stamps import stamp_to_ns
+from ..windowing import Frame, FrameError, kept_rows
+from .conversions import WindowArrays
+
+__all__ = ["StampBuffer", "window_frames"]
+
+
+class StampBuffer:
+    """The last ``depth`` messages (with a ``header``) of every camera, found by exact stamp."""
+
+    def __init__(self, cameras: Sequence[str], depth: int = 30) -> None:
+        self._by_camera: Dict[str, Deque[Tuple[int, object]]] = {
+            c: collections.deque(maxlen=max(int(depth), 1)) for c in cameras}
+
+    def add(self, camera: str, msg) -> None:
+        self._by_camera[camera].append((stamp_to_ns(msg.header.stamp), msg))
+
+    def find(self, camera: str, stamp_ns: int):
+        """The message of ``camera`` stamped ``stamp_ns``, or None."""
+        return next((m for s, m in reversed(self._by_camera.get(camera, ())) if s == stamp_ns), None)
+
+
+def window_frames(window: WindowArrays, keypoints: StampBuffer) -> Tuple[Optional[List[Frame]], str]:
+    """The window's frames cut to the keypoints the matcher kept, or (None, why not)."""
+    frames = []
+    for v, (cam, stamp) in enumerate(zip(window.camera_ids, window.view_stamps_ns.tolist())):
+        msg = keypoints.find(cam, stamp)
+        if msg is None:
+            return None, f"no keypoints of {cam} at {stamp}"
+        try:
+            frame = frame_from_keypoints_msg(msg, camera_id=cam)
+        except FrameError as exc:
+            return None, str(exc)
+        n_view = int(window.view_offsets[v + 1] - window.view_offsets[v])
+        keep = kept_rows(frame.count, frame.scores, n_view)
+        if keep.size != n_view:
+            return None, f"{cam}: the window has {n_view} keypoints, its message {frame.count}"
+        frames.append(Frame(camera_id=cam, stamp_ns=frame.stamp_ns, keypoints=frame.keypoints[keep],
+                            descriptors=frame.descriptors[keep], K=frame.K, image_size=frame.image_size,
+                            frame_id=frame.frame_id))
+    return frames, ""

@@ -1,0 +1,98 @@
+"""The example mapping node: MatchWindows with landmark ids + keypoints + camera poses -> a
+PointCloud2 of triangulated landmarks near the true points; without poses, statistics only."""
+import uuid
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import PointCloud2
+
+from conftest import domain_id
+from gcn_match_msgs.msg import Keypoints, MatchWindow
+from gcn_match_ros import solvers
+from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
+from gcn_match_ros.geometry import rt_to_pose
+from gcn_match_ros.landmark_map import LandmarkMap
+from gcn_match_ros.ros.conversions import frame_to_keypoints, result_to_match_window
+from gcn_match_ros.ros.mapping_node import MappingNode
+from gcn_match_ros.ros.testing import RosSession
+from gcn_match_ros.stamps import ns_to_sec_nanosec
+from gcn_match_ros.stream import solve_stream
+from gcn_match_ros.windowing import Frame
+
+CFG = RigSequenceConfig(n_cameras=3, n_windows=4, n_points=800)
+
+
+def _true_points(seed):
+    rng = np.random.default_rng(seed)  # rig_sequence draws the scene first
+    return np.stack([rng.uniform(-2.0, CFG.length_m, CFG.n_points),
+                     rng.uniform(-CFG.half_width_m, CFG.half_width_m, CFG.n_points),
+                     rng.uniform(0.0, CFG.height_m, CFG.n_points)], 1)
+
+
+def _pose(R, t, stamp_ns):
+    pos, q = rt_to_pose(R, t)
+    msg = PoseStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_sec_nanosec(stamp_ns)
+    msg.header.frame_id = "world"
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = pos.tolist()
+    msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z, msg.pose.orientation.w = q.tolist()
+    return msg
+
+
+def test_the_map_holds_the_landmarks_near_the_true_points():
+    problems, truth, stamps = rig_sequence(CFG, rng=3)
+    X = _true_points(3)
+    solved = list(solve_stream(solvers.create("gcn"), problems, stamps))
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
+        node = session.add_node(MappingNode(context=session.context, namespace=ns))
+        kp_pubs = {c: session.publisher(Keypoints, f"{c}/keypoints") for c in problems[0].camera_ids}
+        pose_pubs = {c: session.publisher(PoseStamped, f"{c}/pose") for c in problems[0].camera_ids}
+        matches = session.publisher(MatchWindow, "matches")
+        clouds = session.collect(PointCloud2, "mapping_node/landmarks")
+        assert session.spin_until(lambda: matches.get_subscription_count() > 0
+                                  and all(p.get_subscription_count() > 0 for p in kp_pubs.values()))
+        for k, (p, (result, landmarks), stamp) in enumerate(zip(problems, solved, stamps)):
+            frames = [Frame(camera_id=c, stamp_ns=stamp, keypoints=p.keypoints[p.view_slice(v)],
+                            descriptors=p.descriptors[p.view_slice(v)], K=p.K[v], image_size=(640, 480))
+                      for v, c in enumerate(p.camera_ids)]
+            for v, f in enumerate(frames):
+                kp_pubs[f.camera_id].publish(frame_to_keypoints(f))
+                pose_pubs[f.camera_id].publish(_pose(p.R[v], p.t[v], stamp))
+            session.spin_until(lambda: False, timeout=0.2)  # the keypoints and poses arrive first
+            matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
+                                                   landmark_ages=landmarks.ages_ns * 1e-9))
+            assert session.spin_until(lambda: len(clouds) == k + 1, timeout=10)
+        cloud = clouds[-1]
+        assert cloud.header.frame_id == "world" and cloud.point_step == 20 and cloud.width > 50
+        data = np.frombuffer(bytes(cloud.data), np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                                          ("id", "<u4"), ("sightings", "<u4")]))
+        # every mapped landmark against the true point its keypoints show in the last window
+        last_ids, last_truth = solved[-1][1].ids, truth[-1]
+        errors = []
+        for row in data:
+            sel = (last_ids == row["id"]) & (last_truth >= 0)
+            if sel.any():
+                errors.append(np.linalg.norm(np.array([row["x"], row["y"], row["z"]]) -
+                                             X[np.bincount(last_truth[sel]).argmax()]))
+        assert len(errors) > 50 and np.median(errors) < 0.5, np.median(errors)
+        assert node.counts["maps published"] == 4 and node.counts["windows without poses"] == 0
+
+
+def test_a_landmark_map_refuses_points_that_do_not_reproject():
+    K = np.array([[400.0, 0, 320], [0, 400, 240], [0, 0, 1]])
+    R = np.eye(3)
+    ts = [np.zeros(3), np.array([-0.5, 0, 0])]
+    X = np.array([0.3, -0.2, 5.0])
+    xy = [K @ (R @ X + t) for t in ts]
+    xy = np.array([v[:2] / v[2] for v in xy])
+    m = LandmarkMap()
+    mapped = m.add_window(np.array([7, 7]), xy, np.array([0, 1]), np.stack([K, K]), np.stack([R, R]), np.stack(ts), 0)
+    assert mapped == [7] and np.allclose(m.points[7], X, atol=1e-6)
+    bad = xy.copy()
+    bad[1, 1] += 30.0  # off the epipolar line: no point explains both sightings
+    m2 = LandmarkMap()
+    assert m2.add_window(np.array([3, 3]), bad, np.array([0, 1]), np.stack([K, K]), np.stack([R, R]), np.stack(ts), 0) == []
+    # landmarks unseen for max_age are dropped
+    m.add_window(np.array([-1]), xy[:1], np.array([0]), K[None], R[None], ts[0][None], int(10e9))
+    assert 7 not in m.points
