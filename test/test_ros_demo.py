@@ -34,6 +34,8 @@ def check_run(tmp_path, rc, out, method):
     assert (summary["scored"], summary["expected"]) == ("4", "4") and "4/4 windows scored" in out
     assert "node diagnostics: frames received cam0 4, cam1 4, cam2 4; 4 windows published, drops: none" in out, out
     assert "node exit status 0" in out
+    # the node's tracks and landmark ids are what the bag solved offline as one stream gives
+    assert "tracks and landmark ids identical to the node's in 4/4 windows" in out, out
     picture = tmp_path / "m.png"
     assert f"picture: {picture}" in out
     img = cv2.imread(str(picture))

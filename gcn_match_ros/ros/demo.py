@@ -45,12 +45,15 @@ from ..bags.io import BagError
 from ..data.scenes import DATA_ROOT
 from ..metrics import score_result
 from ..problem import Problem, Result
+from ..rounding import relabel_tracks
 from ..solvers.gcn import DEFAULT_CHECKPOINT
 from ..stamps import stamp_to_ns
+from ..stream import solve_stream
 from ..track_image import draw_tracks
-from ..windowing import WindowConfig
+from ..windowing import WindowConfig, window_problem
 from .conversions import match_window_to_arrays
 from .dds import FASTDDS_PROFILE_ENV, use_large_shm
+from .matcher_node import create_solver
 from .spin import stop_node_process
 from .testing import RosSession, diagnostic_values
 
@@ -166,6 +169,25 @@ def score_window(msg, col: _Collector, contents) -> Optional[dict]:
     s = score_result(problem, result)
     return {"P": s["P"], "R": s["R"], "F1": s["F1"], "AP": s["AP"], "arrays": w, "gt": gt,
             "keypoints": kps, "sources": sources, "true_pairs": s["true_pairs"]}
+
+
+def offline_parity(windows: List[MatchWindow], contents, cameras: Tuple[str, ...], solver: str,
+                   checkpoint: str) -> Tuple[int, int]:
+    """(windows whose tracks and landmark ids equal the offline ones, windows compared): the
+    bag's windows solved offline as one stream, in order, against the node's (the replay
+    restamps the frames, so windows are paired by order; landmark ages are differences of
+    stamps and ids do not depend on the shift)."""
+    problems, stamps = [], []
+    for frames, _ in contents.windows(WindowConfig(cameras=cameras), flush=False):
+        problems.append(window_problem(frames))
+        stamps.append(max(f.stamp_ns for f in frames))
+    offline = solve_stream(create_solver(solver, checkpoint), problems, stamps)
+    same = 0
+    for msg, (result, landmarks) in zip(windows, offline):
+        w = match_window_to_arrays(msg)
+        same += bool(np.array_equal(relabel_tracks(result.track), w.track)
+                     and w.landmark_ids is not None and np.array_equal(w.landmark_ids, landmarks.ids))
+    return same, min(len(windows), len(problems))
 
 
 def default_params_file() -> Optional[Path]:
@@ -369,6 +391,9 @@ def main(argv=None) -> int:
     _log(f"  node diagnostics: frames received {received}; {diag.get('windows published', '?')} windows "
          f"published, drops: "
          f"{', '.join(f'{k} = {v}' for k, v in drops.items()) or 'none'}")
+    same, total = offline_parity(col.windows, contents, cameras, args.solver, args.checkpoint)
+    _log(f"  offline (the bag's windows solved as one stream, gcn_match_ros.stream.solve_stream): tracks and "
+         f"landmark ids identical to the node's in {same}/{total} windows")
     what = draw_windows(rows, out, args.data_root)
     _log(f"  picture: {out} (tracks drawn on {what})")
     _log(f"  node exit status {node.returncode}; demo took {time.monotonic() - t_start:.1f} s")
