@@ -9,6 +9,8 @@
 - :func:`plot_reliability`: reliability diagram of soft scores — among pairs scored >= s,
   the share that is right (e.g. geometrically consistent) against s; on or above the
   diagonal a consumer can read a score as a lower bound of precision.
+- :func:`plot_landmark_map`: a map of persistent landmarks seen from above (the two world
+  axes the cameras move in most), the camera path, and how many windows each landmark lived.
 - :func:`plot_similarity`: for one (small) problem with ground truth, the input graph A,
   the network's EEᵀ and the ground truth XXᵀ side by side, views in blocks and the
   keypoints of each view ordered by ground-truth track (so true matches form diagonals).
@@ -29,7 +31,7 @@ import numpy as np
 from .graph import CorrespondenceGraph
 from .problem import Problem
 
-__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_similarity",
+__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_landmark_map", "plot_similarity",
            "similarity_order", "cross_view_similarities", "plot_similarity_histograms"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
@@ -219,6 +221,39 @@ def plot_reliability(thresholds: Sequence[float], shares: Mapping[str, Sequence[
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path, dpi=120)
+
+
+def plot_landmark_map(points: np.ndarray, lifetimes: np.ndarray, camera_centers: np.ndarray, path,
+                      title: str = "") -> Path:
+    """Landmarks and the camera path from above, and the landmarks' lifetimes, to a PNG.
+
+    Args:
+        points: (M, 3) world points of the mapped landmarks; lifetimes: (M,) windows each lived.
+        camera_centers: (C, 3) camera centres in window order (drawn as the path).
+    The view is the plane of the two principal axes of the camera path and the points (the
+    scene's "ground" for a rig moving over it).
+    """
+    plt = _plt()
+    allp = np.vstack([np.asarray(points, float).reshape(-1, 3), np.asarray(camera_centers, float).reshape(-1, 3)])
+    centre = allp.mean(0)
+    axes2 = np.linalg.svd(allp - centre, full_matrices=False)[2][:2] if allp.shape[0] >= 2 else np.eye(3)[:2]
+    p2 = (np.asarray(points, float).reshape(-1, 3) - centre) @ axes2.T
+    c2 = (np.asarray(camera_centers, float).reshape(-1, 3) - centre) @ axes2.T
+    fig, (ax, axh) = plt.subplots(1, 2, figsize=(11, 4.8), gridspec_kw={"width_ratios": [2, 1]})
+    sc = ax.scatter(p2[:, 0], p2[:, 1], c=lifetimes, s=4, cmap="viridis")
+    ax.plot(c2[:, 0], c2[:, 1], "r.-", lw=1, ms=5, label="cameras (window order)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=8, loc="best")
+    fig.colorbar(sc, ax=ax, label="windows the landmark lived")
+    ax.set_title(f"{len(p2)} mapped landmarks, seen from above", fontsize=9)
+    lt = np.asarray(lifetimes, int)
+    axh.hist(lt, bins=np.arange(0.5, max(lt.max(initial=1), 1) + 1.5), color="tab:blue")
+    axh.set_xlabel("windows a landmark lived")
+    axh.set_ylabel("landmarks")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path, dpi=110)
 
 
 # ---------------------------------------------------------------------------

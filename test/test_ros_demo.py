@@ -54,3 +54,13 @@ def test_demo_with_the_nearest_neighbour_baseline(tmp_path):
     rc, out = run_demo(tmp_path, "--solver", "nn")
     scores = check_run(tmp_path, rc, out, "nn")
     assert scores["P"] >= 0.8 and scores["F1"] >= 0.6, out  # mutual NN: precise, recall lower than gcn's
+
+
+def test_demo_on_a_bag_with_poses_maps_the_landmarks(tmp_path):
+    rc, out = run_demo(tmp_path, "--bag", "strecha_fountain_sift.mcap")
+    assert rc == 0, out
+    assert "tracks and landmark ids identical to the node's in 9/9 windows" in out, out
+    found = re.search(r"landmarks: (\d+) ids over 9 windows, (\d+) triangulated; windows per landmark: median (\d+)", out)
+    assert found and int(found[2]) > 100 and int(found[3]) >= 2, out  # points live across windows
+    img = cv2.imread(str(tmp_path / "m_landmarks.png"))
+    assert img is not None and img.shape[1] > 600

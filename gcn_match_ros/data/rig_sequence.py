@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import List, Tuple
+from typing import Iterator, List, Tuple
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from ..geometry import project
 from ..problem import Problem
 from .synthetic import DEFAULT_DESCRIPTOR_NOISE, _observe_descriptors, _point_descriptors, rng_of
 
-__all__ = ["RigSequenceConfig", "rig_sequence"]
+__all__ = ["RigSequenceConfig", "rig_sequence", "rig_windows"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,7 +70,7 @@ def _rotation_yaw(yaw: float) -> np.ndarray:
 
 def rig_sequence(config: RigSequenceConfig = RigSequenceConfig(), rng=None,
                  start_ns: int = 1_700_000_000 * 10**9, period_ns: int = 10**8) -> Tuple[List[Problem], List[np.ndarray], List[int]]:
-    """The windows of one sequence.
+    """The windows of one sequence, as lists (:func:`rig_windows`).
 
     Returns:
         problems: one per window (views = cameras, ``camera_ids`` set, K, R, t of the truth,
@@ -79,6 +79,14 @@ def rig_sequence(config: RigSequenceConfig = RigSequenceConfig(), rng=None,
             also for points seen by one camera only (they may continue a landmark);
         stamps_ns: the capture time of each window.
     """
+    out = list(rig_windows(config, rng, start_ns, period_ns))
+    return [p for p, _, _ in out], [i for _, i, _ in out], [s for _, _, s in out]
+
+
+def rig_windows(config: RigSequenceConfig = RigSequenceConfig(), rng=None, start_ns: int = 1_700_000_000 * 10**9,
+                period_ns: int = 10**8) -> Iterator[Tuple[Problem, np.ndarray, int]]:
+    """(problem, point ids, stamp) of each window in turn (:func:`rig_sequence`), made as they
+    are asked for: an hour-long stream never holds more than one window."""
     cfg = config
     rng = rng_of(rng)
     w, h = cfg.image_size
@@ -89,7 +97,6 @@ def rig_sequence(config: RigSequenceConfig = RigSequenceConfig(), rng=None,
     raw = _point_descriptors(cfg.descriptor_kind, cfg.n_points, cfg.descriptor_dim, rng)
     yaws = (np.arange(cfg.n_cameras) - (cfg.n_cameras - 1) / 2) * math.radians(cfg.yaw_step_deg)
     cams = [f"cam{c}" for c in range(cfg.n_cameras)]
-    problems, point_ids, stamps = [], [], []
     for t in range(cfg.n_windows):
         heading = math.radians(cfg.yaw_rate_deg) * t
         centre = np.array([cfg.step_m * t, 0.0, 1.5])
@@ -119,11 +126,9 @@ def rig_sequence(config: RigSequenceConfig = RigSequenceConfig(), rng=None,
         for p, v in zip(pid[pid >= 0].tolist(), view[pid >= 0].tolist()):
             views_of.setdefault(p, set()).add(v)
         gt = np.array([p if p >= 0 and len(views_of[p]) >= 2 else -1 for p in pid.tolist()], np.int64)
-        problems.append(Problem(view_offsets=np.asarray(offsets), keypoints=np.concatenate(kps).astype(np.float32),
-                                descriptors=np.concatenate(descs).astype(np.float32),
-                                K=np.repeat(K[None], cfg.n_cameras, 0), R=np.stack(Rs), t=np.stack(ts),
-                                image_size=np.repeat(np.array([[w, h]]), cfg.n_cameras, 0), gt_track=gt,
-                                name=f"rig{cfg.n_cameras}_w{t}", camera_ids=cams))
-        point_ids.append(pid)
-        stamps.append(start_ns + t * period_ns)
-    return problems, point_ids, stamps
+        problem = Problem(view_offsets=np.asarray(offsets), keypoints=np.concatenate(kps).astype(np.float32),
+                          descriptors=np.concatenate(descs).astype(np.float32),
+                          K=np.repeat(K[None], cfg.n_cameras, 0), R=np.stack(Rs), t=np.stack(ts),
+                          image_size=np.repeat(np.array([[w, h]]), cfg.n_cameras, 0), gt_track=gt,
+                          name=f"rig{cfg.n_cameras}_w{t}", camera_ids=cams)
+        yield problem, pid, start_ns + t * period_ns

@@ -43,7 +43,9 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 from ..bags.contents import read_bag, window_labels
 from ..bags.io import BagError
 from ..data.scenes import DATA_ROOT
+from ..landmark_map import LandmarkMap
 from ..metrics import score_result
+from ..plots import plot_landmark_map
 from ..problem import Problem, Result
 from ..rounding import relabel_tracks
 from ..solvers.gcn import DEFAULT_CHECKPOINT
@@ -188,6 +190,32 @@ def offline_parity(windows: List[MatchWindow], contents, cameras: Tuple[str, ...
         same += bool(np.array_equal(relabel_tracks(result.track), w.track)
                      and w.landmark_ids is not None and np.array_equal(w.landmark_ids, landmarks.ids))
     return same, min(len(windows), len(problems))
+
+
+def map_landmarks(windows: List[MatchWindow], contents, cameras: Tuple[str, ...], path: Path) -> Optional[str]:
+    """With camera poses in the bag: the node's landmarks triangulated into a map
+    (:class:`gcn_match_ros.landmark_map.LandmarkMap`), drawn with the camera path
+    (:func:`gcn_match_ros.plots.plot_landmark_map`); returns a summary, or None without poses."""
+    landmark_map, centers, span = LandmarkMap(), [], {}
+    bag_windows = contents.windows(WindowConfig(cameras=cameras), flush=False)
+    for k, (msg, (frames, _)) in enumerate(zip(windows, bag_windows)):
+        w, problem = match_window_to_arrays(msg), window_problem(frames)
+        if w.landmark_ids is None or problem.R is None or problem.K is None:
+            return None
+        landmark_map.add_window(w.landmark_ids, problem.keypoints, problem.view_index, problem.K, problem.R,
+                                problem.t, w.stamp_ns)
+        centers.append(-problem.R[0].T @ problem.t[0])
+        for i in np.unique(w.landmark_ids[w.landmark_ids >= 0]).tolist():
+            span.setdefault(i, [k, k])[1] = k
+    if not span:
+        return None
+    ids, points, _ = landmark_map.arrays()
+    lifetimes = np.array([span[i][1] - span[i][0] + 1 for i in ids.tolist()], np.int64)
+    plot_landmark_map(points, lifetimes, np.array(centers), path,
+                      title=f"{len(ids)} of {len(span)} landmarks mapped (camera 0's path in red)")
+    all_life = np.array([e - s + 1 for s, e in span.values()])
+    return (f"{len(span)} ids over {len(windows)} windows, {len(ids)} triangulated; windows per landmark: "
+            f"median {np.median(all_life):.0f}, max {all_life.max()}")
 
 
 def default_params_file() -> Optional[Path]:
@@ -396,6 +424,11 @@ def main(argv=None) -> int:
          f"landmark ids identical to the node's in {same}/{total} windows")
     what = draw_windows(rows, out, args.data_root)
     _log(f"  picture: {out} (tracks drawn on {what})")
+    stem = out.stem.replace("matches", "landmarks") if "matches" in out.stem else out.stem + "_landmarks"
+    landmarks_png = out.with_name(stem + out.suffix)
+    mapped = map_landmarks(col.windows, contents, cameras, landmarks_png)
+    if mapped:
+        _log(f"  landmarks: {mapped}; picture: {landmarks_png}")
     _log(f"  node exit status {node.returncode}; demo took {time.monotonic() - t_start:.1f} s")
     if node.returncode != 0:
         _log(f"demo: error: the matcher node exited with {node.returncode}; log: {node_log}")
