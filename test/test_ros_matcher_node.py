@@ -372,6 +372,37 @@ def test_matcher_worker_drops_superseded_stale_and_survives_solver_errors(harnes
         gate.gate.set()
 
 
+def test_matcher_degrades_to_fewer_keypoints_when_behind_and_says_so(harness_factory, gate_solver):
+    h = harness_factory(solver="test_gate", max_keypoints=40, degrade_min_keypoints=10, max_age=3.0)
+    scene = PermutedScene(points=36, dim=32, distractors=0, seed=4)
+    gate = _GateSolver
+    gate.gate.clear()
+    gate.entered.clear()
+    gate.armed = True
+    try:
+        def window(t):
+            for cam in CAMS:
+                h.publish(scene.frame(cam, t)[0])
+
+        t = time.time()
+        window(t)                 # the worker blocks in the solver
+        assert h.spin_until(gate.entered.is_set)
+        for k in (1, 2, 3):       # two of these are superseded: the budget falls 40 -> 30 -> 22
+            window(t + 0.1 * k)
+        h.wait_diag(lambda v: v.get("windows dropped superseded") == "2")
+        gate.armed = False
+        gate.gate.set()
+        h.wait_windows(2)
+        status, values = h.wait_diag(lambda v: v.get("windows published") == "2")
+        assert values["keypoint budget"] == "22" and values["windows degraded"] == "1"
+        assert status.level == DiagnosticStatus.WARN and "degraded under load" in status.message
+        sizes = np.diff(np.asarray(h.windows[1].view_offsets))
+        assert sizes.tolist() == [22, 22, 22]  # the best-scored 22 of each frame's 36
+    finally:
+        gate.armed = False
+        gate.gate.set()
+
+
 def test_matcher_rejects_invalid_parameter_changes(harness_factory):
     h = harness_factory(solver="nn")
     m = h.matcher

@@ -58,9 +58,10 @@ class MatcherStats:
         self.recent.append((time.monotonic(), latency, compute))
 
     def report(self, name: str, hardware_id: str, assembler_drops: Mapping[str, int], descriptor_dim: int,
-               busy: bool, pending: bool, stale_after: float, extra: Optional[Mapping[str, str]] = None
-               ) -> DiagnosticStatus:
-        """The status since the previous report (rates and new drops are counted from it)."""
+               busy: bool, pending: bool, stale_after: float, extra: Optional[Mapping[str, str]] = None,
+               warnings: Sequence[str] = ()) -> DiagnosticStatus:
+        """The status since the previous report (rates and new drops are counted from it);
+        ``warnings``: further conditions that make it WARN (e.g. degraded under load)."""
         mono = time.monotonic()
         while self.recent and self.recent[0][0] < mono - STATS_HORIZON_S:
             self.recent.popleft()
@@ -82,6 +83,7 @@ class MatcherStats:
             problems.append(f"{new_drops} drops since the last report")
         if silent:
             problems.append(f"no input from {', '.join(silent)}")
+        problems.extend(warnings)
         values: Dict[str, str] = {
             **(extra or {}),
             "cameras": ",".join(self.cameras),

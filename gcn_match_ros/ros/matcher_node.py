@@ -54,10 +54,11 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 from .. import solvers
 from ..bags.codec import frame_from_keypoints_msg
 from ..descriptors import describe_descriptor_kind
+from ..load_shedding import KeypointBudget
 from ..problem import Problem
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
-from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, window_problem
+from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, validate_frame, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
 from .diagnostics import MatcherStats
@@ -184,6 +185,8 @@ class _Matcher:
         self._lock = threading.Lock()  # assembler, stats, settings
         self._cv = threading.Condition(threading.Lock())  # pending slot
         self._assembler = WindowAssembler(config)
+        self._budget = KeypointBudget(config.max_keypoints, int(p["degrade_min_keypoints"]))
+        self._last_window_ns: Optional[int] = None
         self._stats = MatcherStats(self._cameras)
         self._pending: Optional[_Job] = None
         self._busy = False
@@ -290,6 +293,7 @@ class _Matcher:
         with self._lock:
             if new_config is not None:
                 self._assembler.reconfigure(new_config)
+                self._budget.reconfigure(new_config.max_keypoints)
             if "score_threshold" in changes:
                 self._score_threshold = float(changes["score_threshold"])
             if "dense_output" in changes:
@@ -346,6 +350,8 @@ class _Matcher:
             self._cv.notify()
         if superseded:
             self._drop_window("superseded")
+            with self._lock:
+                self._budget.behind()
             self.get_logger().warning("inference busy: a pending window was replaced by a newer one "
                                       "(superseded)", throttle_duration_sec=_THROTTLE_S)
 
@@ -389,6 +395,11 @@ class _Matcher:
                                       throttle_duration_sec=_THROTTLE_S)
             return
         t0 = time.perf_counter()
+        with self._lock:
+            budget, config = self._budget.current, self._assembler.config
+        degraded = max(f.count for f in frames) > budget
+        if degraded:  # under load: the best-scored keypoints of each frame (load_shedding)
+            frames = [validate_frame(f, dataclasses.replace(config, max_keypoints=budget)) for f in frames]
         try:
             problem = window_problem(frames)
         except FrameError as exc:
@@ -420,8 +431,11 @@ class _Matcher:
         now = self._now_ns()
         msg.latency_seconds = (now - newest) * 1e-9 if now is not None else 0.0
         self._matches_pub.publish(msg)
+        period = (newest - self._last_window_ns) * 1e-9 if self._last_window_ns is not None else 0.0
+        self._last_window_ns = newest
         with self._lock:
             self._stats.window_published(float(msg.latency_seconds), float(msg.total_seconds))
+            self._budget.solved(float(msg.total_seconds), period, degraded)
 
     # -- diagnostics (executor thread) ----------------------------------------------------
     def diagnostics(self) -> DiagnosticArray:
@@ -436,7 +450,11 @@ class _Matcher:
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),
                        "landmarks live": str(len(self._stream.landmarks)),
-                       "landmarks born": str(self._stream.landmarks.born)})
+                       "landmarks born": str(self._stream.landmarks.born),
+                       "keypoint budget": str(self._budget.current),
+                       "windows degraded": str(self._budget.degraded_windows)},
+                warnings=[f"degraded under load: at most {self._budget.current} keypoints per view"]
+                if self._budget.degraded else [])
         arr = DiagnosticArray(status=[status])
         arr.header.stamp = self.get_clock().now().to_msg()
         return arr

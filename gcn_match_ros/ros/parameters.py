@@ -75,6 +75,10 @@ MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
     ParameterSpec("input_qos", "sensor_data", "QoS of the keypoint subscriptions: sensor_data (best effort, "
                                               "depth 5) or reliable (depth 10).", read_only=True,
                   constraints=" | ".join(INPUT_QOS)),
+    ParameterSpec("degrade_min_keypoints", 200, "Under load (windows superseded) solve fewer keypoints per view, "
+                                                "the best-scored, down to this many, rather than only drop windows; "
+                                                "back up when the worker keeps up; 0: never.", read_only=True,
+                  low=0, high=100000),
     ParameterSpec("diagnostics_period", 1.0, "Period of /diagnostics reports [s].", read_only=True,
                   low=0.05, high=60.0),
 )

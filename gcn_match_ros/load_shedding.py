@@ -1,0 +1,62 @@
+"""Graceful degradation when matching cannot keep up with the cameras: fewer keypoints.
+
+A window that waits while the worker is busy is replaced by a newer one (``superseded``);
+dropping windows alone hides the overload. :class:`KeypointBudget` instead lowers the number
+of keypoints per view the worker solves (each frame keeps its best-scored ones,
+:func:`gcn_match_ros.windowing.kept_rows`, the same rule as ``max_keypoints``): every
+superseded window cuts the budget by ``step`` down to ``floor``; a run of ``calm`` windows
+solved in under ``spare`` of the input period raises it back by the same factor up to the
+configured maximum. The cost of a window grows faster than linearly with its keypoints, so a
+modest cut restores the camera rate; the node reports the budget in ``/diagnostics``.
+"""
+from __future__ import annotations
+
+__all__ = ["KeypointBudget"]
+
+
+class KeypointBudget:
+    """Keypoints per view the worker solves now (module docstring).
+
+    Args:
+        full: the configured maximum (``max_keypoints``); floor: the least it goes to (0 or
+            >= full: never degrade).
+    Attributes:
+        current: the budget now; degraded_windows: windows solved below ``full``.
+    """
+
+    def __init__(self, full: int, floor: int, step: float = 0.75, calm: int = 20, spare: float = 0.7) -> None:
+        self.full, self.floor = int(full), int(floor)
+        self.step, self.calm, self.spare = float(step), int(calm), float(spare)
+        self.current = self.full
+        self.degraded_windows = 0
+        self._calm_run = 0
+
+    @property
+    def enabled(self) -> bool:
+        return 0 < self.floor < self.full
+
+    @property
+    def degraded(self) -> bool:
+        return self.current < self.full
+
+    def reconfigure(self, full: int) -> None:
+        """A new maximum (``max_keypoints`` changed at run time): start from it again."""
+        self.full = self.current = int(full)
+        self._calm_run = 0
+
+    def behind(self) -> None:
+        """A window was superseded: solve fewer keypoints."""
+        if self.enabled:
+            self.current = max(self.floor, int(self.current * self.step))
+        self._calm_run = 0
+
+    def solved(self, compute_s: float, period_s: float, degraded: bool) -> None:
+        """A window was solved in ``compute_s``; windows arrive every ``period_s`` (0: unknown);
+        ``degraded``: it was cut to the budget."""
+        self.degraded_windows += bool(degraded)
+        if not self.degraded or period_s <= 0:
+            return
+        self._calm_run = self._calm_run + 1 if compute_s < self.spare * period_s else 0
+        if self._calm_run >= self.calm:
+            self.current = min(self.full, int(self.current / self.step) + 1)
+            self._calm_run = 0
