@@ -10,8 +10,9 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
   it was last seen;
 - a unit scores a landmark by the best cosine between one of its members and the summary; a
   member of a camera that saw the landmark at its last sighting must lie within ``gate_px`` of
-  that sighting (the rig moves little between windows), a member of another camera (the point
-  moved into it) needs ``cross_similarity``;
+  one of its last sightings (the rig moves little between windows; any camera's, because a
+  camera's image can move to another camera's place — the sample bags slide a "rig" along one
+  image sequence), a member of a camera that did not see it needs ``cross_similarity``;
 - the best landmark of each unit is accepted when it clears ``min_similarity`` and Lowe's
   ratio against the unit's second best; units then take landmarks one-to-one, best score first
   (a landmark continues at most one unit, so a window never gives two points one id);
@@ -90,14 +91,15 @@ class LandmarkTracker:
             need = np.empty((n, L), np.float32)
             for v, cam in enumerate(camera_ids):
                 rows = slice(int(view_offsets[v]), int(view_offsets[v + 1]))
-                last = self._xy[:, self._cams[cam]]                     # (L, 2)
-                seen = ~np.isnan(last[:, 0])
-                # seen by this camera: only a nearby keypoint continues it, at the usual similarity;
-                # not seen by it: the point moved in from another camera, a higher similarity
                 kx, ky = keypoints[rows, 0:1].astype(np.float32), keypoints[rows, 1:2].astype(np.float32)
-                lx, ly = np.nan_to_num(last[:, 0]).astype(np.float32), np.nan_to_num(last[:, 1]).astype(np.float32)
-                near = (kx - lx) ** 2 + (ky - ly) ** 2 <= np.float32(cfg.gate_px ** 2)
-                need[rows] = np.where(seen[None], np.where(near, cfg.min_similarity, np.inf), cfg.cross_similarity)
+                near_any = np.zeros((kx.shape[0], L), bool)
+                for col in self._cams.values():  # near its last sighting in any camera
+                    lx, ly = self._xy[:, col, 0].astype(np.float32), self._xy[:, col, 1].astype(np.float32)
+                    near_any |= (kx - lx) ** 2 + (ky - ly) ** 2 <= np.float32(cfg.gate_px ** 2)  # NaN: False
+                seen = ~np.isnan(self._xy[:, self._cams[cam], 0])
+                # seen by this camera: only a keypoint near one of its sightings continues it, at the
+                # usual similarity; not seen by it: the point moved in from another camera, a higher one
+                need[rows] = np.where(seen[None], np.where(near_any, cfg.min_similarity, np.inf), cfg.cross_similarity)
             score = np.where(sim >= need, sim, -np.inf)
             # each unit's best member per landmark, all units at once: rows grouped by unit
             rows = np.concatenate(units)
