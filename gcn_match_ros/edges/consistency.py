@@ -29,6 +29,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from ..geometry import homogeneous, transfer
 from ..problem import Problem
 from ..rounding import greedy_tracks
 from .verify import MIN_SEEDS, PairModel
@@ -58,54 +59,46 @@ class WindowGeometry:
     def __init__(self, problem: Problem, models: Dict[ViewPair, Optional[PairModel]],
                  unverified_threshold: float = UNVERIFIED_THRESHOLD) -> None:
         self.view_index = problem.view_index
+        self.keypoints = problem.keypoints.astype(np.float64)
         self.models = {k: m for k, m in models.items() if m is not None}
         self.small = problem.view_sizes < MIN_SEEDS
         self.unverified_threshold = float(unverified_threshold)
-        # Per view pair (a < b) tables, so that a check of any pairs is one batched computation
-        # (track checks run once per attempted merge): verified, planar, the selected model
-        # (H or F), H⁻¹, and the tolerance (px for H, epipolar_px for F).
-        V = problem.n_views
-        self.verified = np.zeros((V, V), bool)
-        self._planar = np.zeros((V, V), bool)
-        self._M = np.zeros((V, V, 3, 3))
-        self._M_inv = np.full((V, V, 3, 3), np.nan)
-        self._tol = np.zeros((V, V))
-        for (a, b), m in self.models.items():
-            self.verified[a, b] = True
-            self._planar[a, b] = m.planar
-            self._M[a, b] = m.H if m.planar else m.F
-            self._tol[a, b] = m.px if m.planar else m.epipolar_px
-            if m.planar:
-                try:
-                    self._M_inv[a, b] = np.linalg.inv(m.H)
-                except np.linalg.LinAlgError:
-                    pass  # NaN: no pair agrees with a singular H (as verify.residuals)
-        self._h = np.concatenate([problem.keypoints.astype(np.float64), np.ones((problem.n_keypoints, 1))], 1)
+        #: (V, V) symmetric: the view pair has a trusted model
+        self.verified = np.zeros((problem.n_views, problem.n_views), bool)
+        for a, b in self.models:
+            self.verified[a, b] = self.verified[b, a] = True
         self._offsets = problem.view_offsets
         self._view_list = self.view_index.tolist()
         self._small_list = self.small.tolist()
         self._transfers: Dict[ViewPair, tuple] = {}
 
     def _transfer_lists(self, a: int, b: int) -> tuple:
-        """Per keypoint of views a < b, what the model maps it to, as Python lists (for
-        :meth:`agree_pairs`): planar — H x_a and H⁻¹ x_b (pixels); else F x_a and Fᵀ x_b (lines).
-        Made on first use per view pair."""
+        """For :meth:`agree_pairs`, per keypoint of views a < b what the model maps it to, as
+        Python lists: planar — H x_a and H⁻¹ x_b (pixels, :func:`gcn_match_ros.geometry.transfer`);
+        else F x_a and Fᵀ x_b (lines); then whether planar and the tolerance. Made on first use."""
         out = self._transfers.get((a, b))
         if out is None:
-            ha = self._h[self._offsets[a]:self._offsets[a + 1]]
-            hb = self._h[self._offsets[b]:self._offsets[b + 1]]
-            if self._planar[a, b]:
-                out = (_dehomogenise(ha @ self._M[a, b].T).tolist(), _dehomogenise(hb @ self._M_inv[a, b].T).tolist())
+            model = self.models[(a, b)]
+            xa = self.keypoints[self._offsets[a]:self._offsets[a + 1]]
+            xb = self.keypoints[self._offsets[b]:self._offsets[b + 1]]
+            if model.planar:
+                try:
+                    fwd, bwd = transfer(model.H, xa), transfer(np.linalg.inv(model.H), xb)
+                except np.linalg.LinAlgError:  # no pair agrees with a singular H (as verify.residuals)
+                    fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
+                out = (fwd.tolist(), bwd.tolist(), True, model.px)
             else:
-                out = ((ha @ self._M[a, b].T).tolist(), (hb @ self._M[a, b]).tolist())
+                out = ((homogeneous(xa) @ model.F.T).tolist(), (homogeneous(xb) @ model.F).tolist(), False,
+                       model.epipolar_px)
             self._transfers[(a, b)] = out
         return out
 
     def agree_pairs(self, pairs: List[Tuple[int, int]], slack: float = 1.0) -> List[bool]:
         """:meth:`agree` for a few pairs (x, y) at a time, in plain Python: a track check tests
         a handful of pairs per merge, thousands of merges per window, where numpy's per-call
-        overhead would dominate. Same residuals and answers as :meth:`agree`."""
-        view, small, offs, kp = self._view_list, self._small_list, self._offsets, self._h
+        overhead would dominate. The residuals of :func:`.verify.residuals` (a test holds them
+        equal), read from :meth:`_transfer_lists`."""
+        view, small, offs, kp = self._view_list, self._small_list, self._offsets, self.keypoints
         out = []
         for x, y in pairs:
             a, b = view[x], view[y]
@@ -117,10 +110,10 @@ class WindowGeometry:
             if not self.verified[a, b]:
                 out.append(False)
                 continue
-            fwd, bwd = self._transfer_lists(a, b)
+            fwd, bwd, planar, tol = self._transfer_lists(a, b)
             i, j = x - int(offs[a]), y - int(offs[b])
             xa0, xa1, xb0, xb1 = kp[x, 0], kp[x, 1], kp[y, 0], kp[y, 1]
-            if self._planar[a, b]:
+            if planar:
                 tb, ta = fwd[i], bwd[j]
                 res = 0.5 * (math.hypot(tb[0] - xb0, tb[1] - xb1) + math.hypot(ta[0] - xa0, ta[1] - xa1))
             else:
@@ -128,14 +121,14 @@ class WindowGeometry:
                 num = abs(xb0 * lb[0] + xb1 * lb[1] + lb[2])
                 den = math.sqrt(lb[0] ** 2 + lb[1] ** 2 + la[0] ** 2 + la[1] ** 2)
                 res = num / max(den, 1e-12)
-            out.append(res <= slack * self._tol[a, b])
+            out.append(res <= slack * tol)
         return out
 
     def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """Whether each pair may be matched on geometric grounds alone: it agrees with its
-        verified view pair's model (within ``slack`` x its tolerance; the residuals of
-        :func:`.verify.residuals`), or its view pair is unverifiable. Pairs of unverified view
-        pairs get False (their score decides: :meth:`keep`).
+        verified view pair's model (:meth:`.verify.PairModel.agrees`, within ``slack`` x its
+        tolerance), or its view pair is unverifiable. Pairs of unverified view pairs get False
+        (their score decides: :meth:`keep`).
 
         Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
         """
@@ -145,41 +138,18 @@ class WindowGeometry:
         rows, cols = np.where(swap, cols, rows), np.where(swap, rows, cols)
         va, vb = np.minimum(va, vb), np.maximum(va, vb)
         out = self.small[va] | self.small[vb]
-        ver = self.verified[va, vb]
-        if not ver.any():
-            return out
-        a, b = va[ver], vb[ver]
-        ha, hb, M = self._h[rows[ver]], self._h[cols[ver]], self._M[a, b]
-        planar = self._planar[a, b]
-        res = np.empty(a.shape[0])
-        if planar.any():
-            to_b = _dehomogenise(np.einsum("mij,mj->mi", M[planar], ha[planar]))
-            to_a = _dehomogenise(np.einsum("mij,mj->mi", self._M_inv[a[planar], b[planar]], hb[planar]))
-            res[planar] = 0.5 * (np.linalg.norm(to_b - hb[planar, :2], axis=1)
-                                 + np.linalg.norm(to_a - ha[planar, :2], axis=1))
-        epi = ~planar
-        if epi.any():
-            line_b = np.einsum("mij,mj->mi", M[epi], ha[epi])     # F x_a
-            line_a = np.einsum("mji,mj->mi", M[epi], hb[epi])     # Fᵀ x_b
-            num = np.abs((hb[epi] * line_b).sum(1))
-            den = np.sqrt(line_b[:, 0] ** 2 + line_b[:, 1] ** 2 + line_a[:, 0] ** 2 + line_a[:, 1] ** 2)
-            res[epi] = num / np.maximum(den, 1e-12)
-        out[ver] = res <= slack * self._tol[a, b]
+        for (a, b), model in self.models.items():
+            m = (va == a) & (vb == b)
+            if m.any():
+                out[m] = model.agrees(self.keypoints[rows[m]], self.keypoints[cols[m]], slack)
         return out
 
     def keep(self, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray) -> np.ndarray:
         """(M,) bool: the pairs a solver may publish (module docstring)."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
         va, vb = self.view_index[rows], self.view_index[cols]
-        verified = self.verified[np.minimum(va, vb), np.maximum(va, vb)]
-        unverified = ~verified & ~(self.small[va] | self.small[vb])
+        unverified = ~self.verified[va, vb] & ~(self.small[va] | self.small[vb])
         return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
-
-
-def _dehomogenise(h: np.ndarray) -> np.ndarray:
-    """(M, 3) -> (M, 2), guarding z ≈ 0 as :func:`gcn_match_ros.geometry.transfer` does."""
-    z = h[:, 2:3]
-    return h[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)
 
 
 class TrackCheck:
@@ -221,7 +191,7 @@ class TrackCheck:
         pin each keypoint to the intersection of two epipolar lines: a transfer check that
         needs no direct model."""
         view = self.geometry.view_index
-        verified = self.geometry.verified | self.geometry.verified.T
+        verified = self.geometry.verified
         member_views = view[np.asarray(members, np.int64)]
         out = np.zeros(rows.shape[0], bool)
         for m, (a, b) in enumerate(zip(view[rows].tolist(), view[cols].tolist())):

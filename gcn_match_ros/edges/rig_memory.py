@@ -47,10 +47,6 @@ class RigMemory:
     def __len__(self) -> int:
         return len(self._models)
 
-    def clear(self) -> None:
-        """Forget every model (counts stay)."""
-        self._models.clear()
-
     def model(self, cameras: CameraPair, seeds_a: np.ndarray, seeds_b: np.ndarray,
               fit: Callable[[], Optional[PairModel]], min_inliers: int = MIN_INLIERS,
               min_inlier_ratio: float = MIN_INLIER_RATIO) -> Optional[PairModel]:
