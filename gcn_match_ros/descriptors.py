@@ -11,7 +11,7 @@ from typing import Tuple
 
 import numpy as np
 
-__all__ = ["NORMALIZATIONS", "normalize_descriptors", "descriptor_kind", "describe_descriptor_kind"]
+__all__ = ["NORMALIZATIONS", "normalize_descriptors", "cosine_distance", "descriptor_kind", "describe_descriptor_kind"]
 
 NORMALIZATIONS = ("l2", "rootsift")
 
@@ -35,6 +35,12 @@ def normalize_descriptors(desc: np.ndarray, normalization: str = "l2") -> np.nda
         d = np.sqrt(d / np.maximum(d.sum(axis=1, keepdims=True), 1e-12))
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return d / np.maximum(norm, 1e-12)
+
+
+def cosine_distance(cos):
+    """Euclidean distance between unit vectors from their cosine, sqrt(2 - 2 cos): the quantity
+    Lowe's ratio is defined on. Shapes: any array (or scalar) -> the same."""
+    return np.sqrt(np.maximum(2.0 - 2.0 * cos, 0.0))
 
 
 def descriptor_kind(descriptors: np.ndarray) -> Tuple[int, bool]:

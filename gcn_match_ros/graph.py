@@ -24,7 +24,7 @@ import scipy.sparse as sp
 import torch
 
 from .configs import JsonConfig
-from .descriptors import NORMALIZATIONS
+from .descriptors import NORMALIZATIONS, cosine_distance
 from .problem import Problem
 from .similarity import DescriptorSimilarity
 
@@ -156,11 +156,6 @@ def _top_candidates(sim: torch.Tensor, k: int):
     return idx[:, :kk].numpy(), vals[:, :kk].numpy(), second.numpy()
 
 
-def _cos_to_dist(c: np.ndarray) -> np.ndarray:
-    # Distance between unit vectors, the quantity Lowe's ratio is defined on.
-    return np.sqrt(np.maximum(2.0 - 2.0 * c, 0.0))
-
-
 def _directed_candidates(sim: torch.Tensor, k: int, row_offset: int, col_offset: int):
     """Candidate edges from every row of a similarity block to its top-k columns.
 
@@ -168,7 +163,7 @@ def _directed_candidates(sim: torch.Tensor, k: int, row_offset: int, col_offset:
     """
     idx, best, second = _top_candidates(sim, k)
     ratio = np.where(second[:, None] > -1.0,
-                     _cos_to_dist(best) / np.maximum(_cos_to_dist(second)[:, None], 1e-12), 1.0)
+                     cosine_distance(best) / np.maximum(cosine_distance(second)[:, None], 1e-12), 1.0)
     n_rows, kk = idx.shape
     return (np.repeat(np.arange(n_rows, dtype=np.int64) + row_offset, kk),
             idx.ravel() + col_offset,

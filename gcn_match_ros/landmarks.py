@@ -29,6 +29,8 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
+from .descriptors import cosine_distance
+
 __all__ = ["LandmarkConfig", "LandmarkTracker", "per_camera_nn_ids"]
 
 
@@ -112,9 +114,7 @@ class LandmarkTracker:
             else:
                 second = np.full(len(units), -np.inf)
             second = np.where(np.isfinite(second), second, -1.0)
-            d_first = np.sqrt(np.maximum(2.0 - 2.0 * first, 0.0))
-            d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
-            ok = np.isfinite(first) & ((d_first < cfg.ratio * d_second) | (second < 0))
+            ok = np.isfinite(first) & ((cosine_distance(first) < cfg.ratio * cosine_distance(second)) | (second < 0))
             best_lm = np.where(ok, first_lm, -1)
             best_score = np.where(ok, first, 0.0)
         ids = np.full(n, -1, np.int64)
@@ -234,8 +234,7 @@ def per_camera_nn_ids(previous: Tuple[List[np.ndarray], List[np.ndarray], np.nda
             best = sim.argmax(1)
             back = sim.argmax(0)
             top2 = np.sort(sim, axis=1)[:, -2:]
-            ok = (back[best] == np.arange(rows.size)) & (
-                np.sqrt(np.maximum(2 - 2 * top2[:, 1], 0)) < ratio * np.sqrt(np.maximum(2 - 2 * top2[:, 0], 0)))
+            ok = (back[best] == np.arange(rows.size)) & (cosine_distance(top2[:, 1]) < ratio * cosine_distance(top2[:, 0]))
             linked[rows[ok]] = prev_ids[cam][best[ok]]
     ids = np.full(n, -1, np.int64)
     used = set()

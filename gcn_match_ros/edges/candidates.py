@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 import torch
 
 from ..configs import JsonConfig
-from ..descriptors import NORMALIZATIONS
+from ..descriptors import NORMALIZATIONS, cosine_distance
 from ..geometry import epipolar_distance_matrix, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
@@ -218,8 +218,8 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
     ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
     eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
     mutual_ab = (nn_c[nn_r] == np.arange(na))
-    ratio_r = _dist(best_r) / np.maximum(_dist(sec_r), 1e-9)
-    ratio_c = _dist(best_c) / np.maximum(_dist(sec_c), 1e-9)
+    ratio_r = cosine_distance(best_r) / np.maximum(cosine_distance(sec_r), 1e-9)
+    ratio_c = cosine_distance(best_c) / np.maximum(cosine_distance(sec_c), 1e-9)
     conf_a = np.flatnonzero(mutual_ab & (ratio_r < config.ratio) & (ratio_c[nn_r] < config.ratio))
     conf_b = nn_r[conf_a]
     model = None
@@ -259,8 +259,8 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
     s = sim[ea, eb]
     rank_a = (top_r[ea] > s[:, None]).sum(1)  # exact below RANK_CAP, else >= RANK_CAP
     rank_b = (top_c[eb] > s[:, None]).sum(1)
-    rat_a = _dist(s) / np.maximum(np.where(rank_a == 0, _dist(sec_r[ea]), _dist(best_r[ea])), 1e-9)
-    rat_b = _dist(s) / np.maximum(np.where(rank_b == 0, _dist(sec_c[eb]), _dist(best_c[eb])), 1e-9)
+    rat_a = cosine_distance(s) / np.maximum(np.where(rank_a == 0, cosine_distance(sec_r[ea]), cosine_distance(best_r[ea])), 1e-9)
+    rat_b = cosine_distance(s) / np.maximum(np.where(rank_b == 0, cosine_distance(sec_c[eb]), cosine_distance(best_c[eb])), 1e-9)
     mutual = (rank_a == 0) & (rank_b == 0)
     conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
     if model is not None:
@@ -272,11 +272,6 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
         kind = 0.0
     return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
                           np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2), model
-
-
-def _dist(c: np.ndarray) -> np.ndarray:
-    """Distance between unit vectors from their cosine (what Lowe's ratio is defined on)."""
-    return np.sqrt(np.maximum(2 - 2 * c, 0))
 
 
 def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, px: float):

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from ..descriptors import normalize_descriptors
+from ..descriptors import cosine_distance, normalize_descriptors
 from ..graph import CorrespondenceGraph
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
@@ -73,7 +73,7 @@ def _scales(desc: torch.Tensor, offs: np.ndarray) -> np.ndarray:
         cos = dv @ dv.T
         cos.fill_diagonal_(-np.inf)
         best = cos.max(dim=1).values.numpy().astype(np.float64)
-        sigma[lo:hi] = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
+        sigma[lo:hi] = cosine_distance(best)
     finite = np.isfinite(sigma) & (sigma > 0)
     fill = float(np.median(sigma[finite])) if finite.any() else 1.0
     sigma[~finite] = np.where(np.isinf(sigma[~finite]), fill, max(fill * 1e-3, 1e-6))
@@ -94,8 +94,7 @@ def _candidate_edges(desc: torch.Tensor, offs: np.ndarray, adjacency):
         rows, cols = np.concatenate([lo, hi]), np.concatenate([hi, lo])
     rows, cols = rows.astype(np.int64), cols.astype(np.int64)
     cos = (desc[torch.from_numpy(rows)] * desc[torch.from_numpy(cols)]).sum(dim=1).numpy().astype(np.float64)
-    dist = np.sqrt(np.maximum(2.0 - 2.0 * cos, 0.0))
-    return rows, cols, dist
+    return rows, cols, cosine_distance(cos)
 
 
 def _quickmatch(n, view, rows, cols, dist, sigma, rho_density, rho_edge):
