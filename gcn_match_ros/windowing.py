@@ -33,7 +33,7 @@ import numpy as np
 from .problem import FormatError, Problem
 from .stamps import duration_ns
 
-__all__ = ["Frame", "FrameError", "WindowConfig", "WindowParameter", "window_parameters", "WindowAssembler",
+__all__ = ["Frame", "FrameError", "WindowConfig", "WindowParameter", "window_parameters", "WindowAssembler", "trim_frame",
            "validate_frame", "kept_rows", "window_problem"]
 
 
@@ -234,13 +234,25 @@ def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descript
             raise FrameError("bad_intrinsics", f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
         if abs(np.linalg.det(K)) < 1e-12:
             K = None  # all-zero CameraInfo.k: uncalibrated
-    keep = slice(None)
-    if config is not None and n > config.max_keypoints:
-        keep = kept_rows(n, scores, config.max_keypoints)
-    sub = (lambda a: None if a is None else a[keep].astype(np.float32))  # noqa: E731
-    return dataclasses.replace(frame, keypoints=kp[keep].astype(np.float32),
-                               descriptors=desc[keep].astype(np.float32), scales=sub(scales),
-                               orientations=sub(orient), scores=sub(scores), K=K)
+    clean = dataclasses.replace(frame, keypoints=kp, descriptors=desc, scales=scales, orientations=orient,
+                                scores=scores, K=K)
+    if config is not None:
+        clean = trim_frame(clean, config.max_keypoints)
+    f32 = (lambda a: None if a is None else a.astype(np.float32))  # noqa: E731
+    return dataclasses.replace(clean, keypoints=f32(clean.keypoints), descriptors=f32(clean.descriptors),
+                               scales=f32(clean.scales), orientations=f32(clean.orientations), scores=f32(clean.scores))
+
+
+def trim_frame(frame: Frame, max_keypoints: int) -> Frame:
+    """The frame with only the keypoints a window keeps (:func:`kept_rows`): all of them, or the
+    ``max_keypoints`` best-scored ones (per-keypoint fields cut alike)."""
+    if frame.count <= max_keypoints:
+        return frame
+    keep = kept_rows(frame.count, frame.scores, max_keypoints)
+    sub = (lambda a: None if a is None else a[keep])  # noqa: E731
+    return dataclasses.replace(frame, keypoints=frame.keypoints[keep], descriptors=frame.descriptors[keep],
+                               scales=sub(frame.scales), orientations=sub(frame.orientations),
+                               scores=sub(frame.scores))
 
 
 def window_problem(frames: Sequence[Frame], name: str = "") -> Problem:

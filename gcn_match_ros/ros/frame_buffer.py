@@ -4,7 +4,7 @@ Consumers of ``MatchWindow`` (the visualiser, the mapping node) need each view's
 coordinates, which travel in the ``Keypoints`` messages the window names by camera and exact
 stamp. :class:`StampBuffer` keeps the last few messages of every camera; :func:`window_frames`
 finds a window's frames there and cuts them to the keypoints the matcher kept
-(:func:`gcn_match_ros.windowing.kept_rows`, the one rule).
+(:func:`gcn_match_ros.windowing.trim_frame`, the one rule).
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Deque, Dict, List, Optional, Sequence, Tuple
 
 from ..bags.codec import frame_from_keypoints_msg
 from ..stamps import stamp_to_ns
-from ..windowing import Frame, FrameError, kept_rows
+from ..windowing import Frame, FrameError, trim_frame
 from .conversions import WindowArrays
 
 __all__ = ["StampBuffer", "window_frames"]
@@ -46,10 +46,7 @@ def window_frames(window: WindowArrays, keypoints: StampBuffer) -> Tuple[Optiona
         except FrameError as exc:
             return None, str(exc)
         n_view = int(window.view_offsets[v + 1] - window.view_offsets[v])
-        keep = kept_rows(frame.count, frame.scores, n_view)
-        if keep.size != n_view:
+        if frame.count < n_view:
             return None, f"{cam}: the window has {n_view} keypoints, its message {frame.count}"
-        frames.append(Frame(camera_id=cam, stamp_ns=frame.stamp_ns, keypoints=frame.keypoints[keep],
-                            descriptors=frame.descriptors[keep], K=frame.K, image_size=frame.image_size,
-                            frame_id=frame.frame_id))
+        frames.append(trim_frame(frame, n_view))
     return frames, ""

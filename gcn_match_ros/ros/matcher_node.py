@@ -58,7 +58,7 @@ from ..load_shedding import KeypointBudget
 from ..problem import Problem
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
-from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, validate_frame, window_problem
+from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, trim_frame, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
 from .diagnostics import MatcherStats
@@ -396,10 +396,10 @@ class _Matcher:
             return
         t0 = time.perf_counter()
         with self._lock:
-            budget, config = self._budget.current, self._assembler.config
+            budget = self._budget.current
         degraded = max(f.count for f in frames) > budget
         if degraded:  # under load: the best-scored keypoints of each frame (load_shedding)
-            frames = [validate_frame(f, dataclasses.replace(config, max_keypoints=budget)) for f in frames]
+            frames = [trim_frame(f, budget) for f in frames]
         try:
             problem = window_problem(frames)
         except FrameError as exc:
