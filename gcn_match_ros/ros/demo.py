@@ -173,16 +173,12 @@ def score_window(msg, col: _Collector, contents) -> Optional[dict]:
             "keypoints": kps, "sources": sources, "true_pairs": s["true_pairs"]}
 
 
-def offline_parity(windows: List[MatchWindow], contents, cameras: Tuple[str, ...], solver: str,
+def offline_parity(windows: List[MatchWindow], problems: List[Problem], stamps: List[int], solver: str,
                    checkpoint: str) -> Tuple[int, int]:
     """(windows whose tracks and landmark ids equal the offline ones, windows compared): the
-    bag's windows solved offline as one stream, in order, against the node's (the replay
-    restamps the frames, so windows are paired by order; landmark ages are differences of
-    stamps and ids do not depend on the shift)."""
-    problems, stamps = [], []
-    for frames, _ in contents.windows(WindowConfig(cameras=cameras), flush=False):
-        problems.append(window_problem(frames))
-        stamps.append(max(f.stamp_ns for f in frames))
+    bag's windows (``problems``, their newest ``stamps``) solved offline as one stream, in order,
+    against the node's (the replay restamps the frames, so windows are paired by order; landmark
+    ages are differences of stamps and ids do not depend on the shift)."""
     offline = solve_stream(create_solver(solver, checkpoint), problems, stamps)
     same = 0
     for msg, (result, landmarks) in zip(windows, offline):
@@ -192,14 +188,13 @@ def offline_parity(windows: List[MatchWindow], contents, cameras: Tuple[str, ...
     return same, min(len(windows), len(problems))
 
 
-def map_landmarks(windows: List[MatchWindow], contents, cameras: Tuple[str, ...], path: Path) -> Optional[str]:
+def map_landmarks(windows: List[MatchWindow], problems: List[Problem], path: Path) -> Optional[str]:
     """With camera poses in the bag: the node's landmarks triangulated into a map
     (:class:`gcn_match_ros.landmark_map.LandmarkMap`), drawn with the camera path
     (:func:`gcn_match_ros.plots.plot_landmark_map`); returns a summary, or None without poses."""
     landmark_map, centers, span = LandmarkMap(), [], {}
-    bag_windows = contents.windows(WindowConfig(cameras=cameras), flush=False)
-    for k, (msg, (frames, _)) in enumerate(zip(windows, bag_windows)):
-        w, problem = match_window_to_arrays(msg), window_problem(frames)
+    for k, (msg, problem) in enumerate(zip(windows, problems)):
+        w = match_window_to_arrays(msg)
         if w.landmark_ids is None or problem.R is None or problem.K is None:
             return None
         landmark_map.add_window(w.landmark_ids, problem.keypoints, problem.view_index, problem.K, problem.R,
@@ -310,7 +305,9 @@ def main(argv=None) -> int:
         _log(f"demo: error: {exc}")
         return 1
     cameras = tuple(contents.cameras)
-    expected = sum(1 for _ in contents.windows(WindowConfig(cameras=cameras), flush=False))
+    # the windows the node will form on replay, formed once here (scoring, offline parity, the map)
+    bag_windows = [frames for frames, _ in contents.windows(WindowConfig(cameras=cameras), flush=False)]
+    expected = len(bag_windows)
     _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
          f"{expected} windows; solver {args.solver}")
 
@@ -419,14 +416,16 @@ def main(argv=None) -> int:
     _log(f"  node diagnostics: frames received {received}; {diag.get('windows published', '?')} windows "
          f"published, drops: "
          f"{', '.join(f'{k} = {v}' for k, v in drops.items()) or 'none'}")
-    same, total = offline_parity(col.windows, contents, cameras, args.solver, args.checkpoint)
+    problems = [window_problem(frames) for frames in bag_windows]
+    same, total = offline_parity(col.windows, problems, [max(f.stamp_ns for f in frames) for frames in bag_windows],
+                                 args.solver, args.checkpoint)
     _log(f"  offline (the bag's windows solved as one stream, gcn_match_ros.stream.solve_stream): tracks and "
          f"landmark ids identical to the node's in {same}/{total} windows")
     what = draw_windows(rows, out, args.data_root)
     _log(f"  picture: {out} (tracks drawn on {what})")
     stem = out.stem.replace("matches", "landmarks") if "matches" in out.stem else out.stem + "_landmarks"
     landmarks_png = out.with_name(stem + out.suffix)
-    mapped = map_landmarks(col.windows, contents, cameras, landmarks_png)
+    mapped = map_landmarks(col.windows, problems, landmarks_png)
     if mapped:
         _log(f"  landmarks: {mapped}; picture: {landmarks_png}")
     _log(f"  node exit status {node.returncode}; demo took {time.monotonic() - t_start:.1f} s")
