@@ -139,6 +139,8 @@ class _Matcher:
         self._worker: Optional[threading.Thread] = None
         self._subs: list = []
         self._solver = None
+        self._assembler = None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
 
     # -- configure: validate parameters, load and warm up the solver ------------------------
     def _configure(self) -> None:
@@ -158,9 +160,11 @@ class _Matcher:
         device = p["device"]
         if not (device == "cpu" or device == "cuda" or device.startswith("cuda:")):
             raise StartupError(f"parameter device='{device}': must be 'cpu', 'cuda' or 'cuda:<index>'")
-        for cam in self._cameras:
-            if not cam or not all(ch.isalnum() or ch in "_/~{}" for ch in cam) or cam[0].isdigit():
-                raise StartupError(f"camera id '{cam}' does not make a valid topic name")
+        for cam in self._cameras:  # checked here (rcl's rule), so a lifecycle node fails in configure
+            try:
+                self.resolve_topic_name(f"{cam}/keypoints")
+            except Exception as exc:
+                raise StartupError(f"camera id '{cam}' does not make a valid topic name: {exc}") from None
         self._score_threshold = float(p["score_threshold"])
         self._dense_output = bool(p["dense_output"])
         self._input_qos = p["input_qos"]
@@ -191,9 +195,6 @@ class _Matcher:
         self._pending: Optional[_Job] = None
         self._busy = False
         self._stopping = False
-        if not getattr(self, "_parameters_watched", False):
-            self.add_on_set_parameters_callback(self._on_set_parameters)
-            self._parameters_watched = True
 
     # -- activate: publishers, subscriptions, diagnostics, the worker -----------------------
     def _activate(self) -> None:
@@ -204,13 +205,9 @@ class _Matcher:
         self._diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         qos = qos_profile_sensor_data if self._input_qos == "sensor_data" else QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._subs = []
-        for cam in self._cameras:
-            try:
-                self._subs.append(self.create_subscription(
-                    Keypoints, f"{cam}/keypoints", lambda msg, cam=cam: self._on_keypoints(msg, cam), qos))
-            except Exception as exc:  # invalid topic name
-                raise StartupError(f"camera id '{cam}' does not make a valid topic name: {exc}") from None
+        self._subs = [self.create_subscription(Keypoints, f"{cam}/keypoints",
+                                               lambda msg, cam=cam: self._on_keypoints(msg, cam), qos)
+                      for cam in self._cameras]
         self._diag_timer = self.create_timer(self._diagnostics_period, self._publish_diagnostics)
         with self._cv:
             self._stopping = False
@@ -271,7 +268,7 @@ class _Matcher:
     def _on_set_parameters(self, params) -> SetParametersResult:
         """Validate (and apply) run-time changes; ranges and read-only are checked by rclpy."""
         changes = {p.name: p.value for p in params}
-        if getattr(self, "_assembler", None) is None:  # unconfigured: configure validates them
+        if self._assembler is None:  # unconfigured: configure validates them
             return SetParametersResult(successful=True)
         window = {k: v for k, v in changes.items() if k in parameters.WINDOW_PARAMETER_NAMES}
         new_config = None
@@ -526,11 +523,7 @@ class LifecycleMatcherNode(_Matcher, LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        try:
-            self._activate()
-        except StartupError as exc:
-            self.get_logger().error(f"activate failed: {exc}")
-            return TransitionCallbackReturn.FAILURE
+        self._activate()  # its inputs were validated in configure
         return TransitionCallbackReturn.SUCCESS
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
