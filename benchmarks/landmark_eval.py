@@ -5,7 +5,7 @@ For 2, 3 and 4 cameras and ``--seeds`` sequences each (data/rig_sequence.py; see
 cameras was used to choose LandmarkConfig's defaults, seeds 10 and 11 were not), every window is solved by the
 solver as one stream (rig memory on) and its tracks are given landmark ids by
 (a) :class:`gcn_match_ros.landmarks.LandmarkTracker` and (b) the baseline
-:func:`gcn_match_ros.landmarks.per_camera_nn_ids` (per-camera mutual nearest neighbours
+:class:`gcn_match_ros.landmarks.PerCameraNNLinker` (per-camera mutual nearest neighbours
 between consecutive windows). Metrics: gcn_match_ros.landmark_metrics. Goals (issue 13): id
 precision >= 0.95 and fragmentation <= 1.2 on these sequences.
 
@@ -30,33 +30,33 @@ from gcn_match_ros import solvers
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
 from gcn_match_ros.experiments import results_header
 from gcn_match_ros.landmark_metrics import landmark_scores
-from gcn_match_ros.landmarks import LandmarkTracker, per_camera_nn_ids
+from gcn_match_ros.landmarks import LandmarkTracker, PerCameraNNLinker
 from gcn_match_ros.stream import StreamState
 
 REPO = Path(__file__).resolve().parents[1]
 METRICS = ("id_precision", "switches_per_100", "fragmentation", "lifetime", "true_span", "landmarks")
 
 
-def run_sequence(solver_spec: str, cameras: int, seed: int, windows: int):
-    problems, truth, stamps = rig_sequence(RigSequenceConfig(n_cameras=cameras, n_windows=windows, n_points=1500),
-                                           rng=seed)
-    solver, state, tracker = solvers.create(solver_spec), StreamState(), LandmarkTracker()
-    ours, base, prev, next_id = [], [], None, 0
-    solve_s, track_s = [], []
+def assign_ids(solver_spec: str, problems, stamps):
+    """Solve the windows as one stream and give them ids both ways: (tracker ids, baseline ids,
+    median solve seconds, median tracker seconds), per window."""
+    solver, state, tracker, linker = solvers.create(solver_spec), StreamState(), LandmarkTracker(), PerCameraNNLinker()
+    ours, base, solve_s, track_s = [], [], [], []
     for p, ns in zip(problems, stamps):
         result = solver.solve(p, stream=state)
         solve_s.append(result.seconds)
         t0 = time.perf_counter()
-        ids, _ = tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, result.track, ns)
+        ours.append(tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, result.track, ns)[0])
         track_s.append(time.perf_counter() - t0)
-        ours.append(ids)
-        b, next_id = per_camera_nn_ids(prev, p.camera_ids, p.view_offsets, p.descriptors, result.track, next_id)
-        base.append(b)
-        d = p.descriptors / np.maximum(np.linalg.norm(p.descriptors, axis=1, keepdims=True), 1e-12)
-        prev = ({c: d[p.view_slice(v)] for v, c in enumerate(p.camera_ids)},
-                {c: b[p.view_slice(v)] for v, c in enumerate(p.camera_ids)}, None)
-    return (landmark_scores(ours, truth), landmark_scores(base, truth), float(np.median(solve_s)),
-            float(np.median(track_s)), len(tracker))
+        base.append(linker.update(p.camera_ids, p.view_offsets, p.descriptors, result.track))
+    return ours, base, float(np.median(solve_s)), float(np.median(track_s))
+
+
+def run_sequence(solver_spec: str, cameras: int, seed: int, windows: int):
+    problems, truth, stamps = rig_sequence(RigSequenceConfig(n_cameras=cameras, n_windows=windows, n_points=1500),
+                                           rng=seed)
+    ours, base, solve_s, track_s = assign_ids(solver_spec, problems, stamps)
+    return landmark_scores(ours, truth), landmark_scores(base, truth), solve_s, track_s
 
 
 def run_bag(solver_spec: str, path: Path):
@@ -70,16 +70,7 @@ def run_bag(solver_spec: str, path: Path):
     truth = [np.where(labels >= 0, labels, -1) if labels is not None else np.full(p.n_keypoints, -1)
              for (_, labels), p in zip(windows, problems)]
     stamps = [max(f.stamp_ns for f in frames) for frames, _ in windows]
-    solver, state, tracker = solvers.create(solver_spec), StreamState(), LandmarkTracker()
-    ours, base, prev, next_id = [], [], None, 0
-    for p, ns in zip(problems, stamps):
-        result = solver.solve(p, stream=state)
-        ours.append(tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, result.track, ns)[0])
-        b, next_id = per_camera_nn_ids(prev, p.camera_ids, p.view_offsets, p.descriptors, result.track, next_id)
-        base.append(b)
-        d = p.descriptors / np.maximum(np.linalg.norm(p.descriptors, axis=1, keepdims=True), 1e-12)
-        prev = ({c: d[p.view_slice(v)] for v, c in enumerate(p.camera_ids)},
-                {c: b[p.view_slice(v)] for v, c in enumerate(p.camera_ids)}, None)
+    ours, base, _, _ = assign_ids(solver_spec, problems, stamps)
     return landmark_scores(ours, truth), landmark_scores(base, truth), len(problems)
 
 
@@ -97,7 +88,7 @@ def main(argv=None) -> int:
     agg = {"tracker": [], "baseline": []}
     for cams in args.cameras:
         for seed in args.seeds:
-            ours, base, solve_s, track_s, live = run_sequence(args.solver, cams, seed, args.windows)
+            ours, base, solve_s, track_s = run_sequence(args.solver, cams, seed, args.windows)
             for name, m, t in (("tracker", ours, track_s), ("baseline (per-camera NN)", base, None)):
                 agg["tracker" if name == "tracker" else "baseline"].append(m)
                 cells = " | ".join(f"{m[k]:.3f}" if k in ("id_precision",) else f"{m[k]:.2f}" for k in METRICS)

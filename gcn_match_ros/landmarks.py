@@ -31,7 +31,7 @@ import numpy as np
 
 from .descriptors import cosine_distance
 
-__all__ = ["LandmarkConfig", "LandmarkTracker", "per_camera_nn_ids"]
+__all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,48 +202,48 @@ def _units(track: np.ndarray) -> List[np.ndarray]:
     return units + [np.array([i]) for i in np.flatnonzero(track < 0)]
 
 
-def per_camera_nn_ids(previous: Tuple[List[np.ndarray], List[np.ndarray], np.ndarray], camera_ids: Sequence[str],
-                      view_offsets: np.ndarray, descriptors: np.ndarray, track: np.ndarray,
-                      next_id: int, ratio: float = 0.8) -> Tuple[np.ndarray, int]:
+class PerCameraNNLinker:
     """The baseline: ids linked window to window by per-camera mutual nearest neighbours.
 
     Each keypoint is linked to the previous window's keypoint of the same camera that is its
-    mutual nearest neighbour (and passes Lowe's ratio); a unit (track, or lone keypoint) takes
-    the id of its first linked member, one unit per id; an unlinked track gets a new id.
-
-    Args:
-        previous: (per camera descriptors, per camera ids, unused) of the previous window, or
-            None at the start.
-        next_id: the next unused id.
-
-    Returns:
-        (N,) ids (-1: none) and the next unused id.
+    mutual nearest neighbour (and passes Lowe's ``ratio``); a unit (track, or lone keypoint)
+    takes the id of its first linked member, one unit per id; an unlinked track gets a new id.
     """
-    n = descriptors.shape[0]
-    desc = descriptors / np.maximum(np.linalg.norm(descriptors, axis=1, keepdims=True), 1e-12)
-    linked = np.full(n, -1, np.int64)
-    if previous is not None:
-        prev_desc, prev_ids = previous[0], previous[1]
+
+    def __init__(self, ratio: float = 0.8) -> None:
+        self.ratio = ratio
+        self._next_id = 0
+        self._previous: Dict[str, Tuple[np.ndarray, np.ndarray]] = {}  # camera -> (descriptors, ids)
+
+    def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, descriptors: np.ndarray,
+               track: np.ndarray) -> np.ndarray:
+        """(N,) ids of one solved window (-1: none)."""
+        n = descriptors.shape[0]
+        desc = descriptors / np.maximum(np.linalg.norm(descriptors, axis=1, keepdims=True), 1e-12)
+        linked = np.full(n, -1, np.int64)
         for v, cam in enumerate(camera_ids):
-            if cam not in prev_desc or prev_desc[cam].shape[0] < 2:
-                continue
             rows = np.arange(int(view_offsets[v]), int(view_offsets[v + 1]))
-            if rows.size < 2:
+            prev_desc, prev_ids = self._previous.get(cam, (np.zeros((0, 1)), None))
+            if prev_desc.shape[0] < 2 or rows.size < 2:
                 continue
-            sim = desc[rows] @ prev_desc[cam].T
+            sim = desc[rows] @ prev_desc.T
             best = sim.argmax(1)
             back = sim.argmax(0)
             top2 = np.sort(sim, axis=1)[:, -2:]
-            ok = (back[best] == np.arange(rows.size)) & (cosine_distance(top2[:, 1]) < ratio * cosine_distance(top2[:, 0]))
-            linked[rows[ok]] = prev_ids[cam][best[ok]]
-    ids = np.full(n, -1, np.int64)
-    used = set()
-    for members in _units(track):
-        cand = [int(linked[m]) for m in members if linked[m] >= 0 and int(linked[m]) not in used]
-        if cand:
-            ids[members] = cand[0]
-            used.add(cand[0])
-        elif members.size >= 2:
-            ids[members] = next_id
-            next_id += 1
-    return ids, next_id
+            ok = (back[best] == np.arange(rows.size)) & (cosine_distance(top2[:, 1])
+                                                         < self.ratio * cosine_distance(top2[:, 0]))
+            linked[rows[ok]] = prev_ids[best[ok]]
+        ids = np.full(n, -1, np.int64)
+        used = set()
+        for members in _units(track):
+            cand = [int(linked[m]) for m in members if linked[m] >= 0 and int(linked[m]) not in used]
+            if cand:
+                ids[members] = cand[0]
+                used.add(cand[0])
+            elif members.size >= 2:
+                ids[members] = self._next_id
+                self._next_id += 1
+        self._previous = {cam: (desc[int(view_offsets[v]):int(view_offsets[v + 1])],
+                                ids[int(view_offsets[v]):int(view_offsets[v + 1])])
+                          for v, cam in enumerate(camera_ids)}
+        return ids

@@ -3,7 +3,7 @@ import numpy as np
 
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
 from gcn_match_ros.landmark_metrics import landmark_scores
-from gcn_match_ros.landmarks import LandmarkConfig, LandmarkTracker, per_camera_nn_ids
+from gcn_match_ros.landmarks import LandmarkConfig, LandmarkTracker, PerCameraNNLinker
 
 CAMS = ("a", "b")
 PERIOD = 10**8
@@ -85,14 +85,12 @@ def test_metrics_count_switches_and_fragments():
 def test_the_baseline_links_per_camera_nearest_neighbours():
     rng = np.random.default_rng(2)
     base, xy = np.abs(rng.normal(size=(20, 32))), rng.uniform(0, 300, (20, 2))
+    linker = PerCameraNNLinker()
     offs, kp, desc, track, truth = _window(rng, base, xy, np.arange(20), shift=0.0)
-    ids0, nxt = per_camera_nn_ids(None, CAMS, offs, desc, track, 0)
-    assert nxt == 20 and len(np.unique(ids0)) == 20
-    d = desc / np.linalg.norm(desc, axis=1, keepdims=True)
-    prev = ({c: d[offs[v]:offs[v + 1]] for v, c in enumerate(CAMS)}, {c: ids0[offs[v]:offs[v + 1]] for v, c in enumerate(CAMS)}, None)
+    ids0 = linker.update(CAMS, offs, desc, track)
+    assert len(np.unique(ids0)) == 20 and ids0.max() == 19
     offs, kp, desc, track, truth = _window(rng, base, xy, np.arange(20), shift=1.0)
-    ids1, nxt = per_camera_nn_ids(prev, CAMS, offs, desc, track, nxt)
-    np.testing.assert_array_equal(ids1, ids0) and nxt == 20
+    np.testing.assert_array_equal(linker.update(CAMS, offs, desc, track), ids0)
 
 
 def test_rig_sequences_have_exact_point_ids_and_shared_points_over_time():
