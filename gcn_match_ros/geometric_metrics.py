@@ -30,7 +30,7 @@ from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .geometry import epipolar_distances, fundamental_from_poses, project, triangulate_views, unproject
+from .geometry import epipolar_distances, fundamental_from_poses, project, triangulate_checked, unproject
 from .problem import Problem, Result
 from .rounding import tracks_to_pairs
 
@@ -80,18 +80,7 @@ def _members_fit(problem: Problem, members: np.ndarray, tol: GeometricTolerance)
     and (B,) its largest reprojection error in pixels."""
     view = problem.view_index[members]                                     # (B, m)
     kp = problem.keypoints.astype(np.float64)[members]                     # (B, m, 2)
-    K, R, t = problem.K[view], problem.R[view], problem.t[view]
-    u = np.einsum("bmij,bmj->bmi", np.linalg.inv(K), np.concatenate([kp, np.ones(kp.shape[:2] + (1,))], -1))
-    u = u[..., :2] / u[..., 2:]
-    P = np.concatenate([R, t[..., None]], axis=-1)                          # (B, m, 3, 4)
-    X = triangulate_views(P, u)                                            # (B, 3)
-    cam = np.einsum("bmij,bj->bmi", R, X) + t                               # (B, m, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        px = np.einsum("bmij,bmj->bmi", K, cam)
-        px = px[..., :2] / px[..., 2:]
-    err = np.linalg.norm(px - kp, axis=-1)
-    err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
-    in_front = (cam[..., 2] > 0).all(axis=1) & np.isfinite(X).all(axis=1)
+    _, err, in_front = triangulate_checked(problem.K[view], problem.R[view], problem.t[view], kp)
     return in_front & (err <= tol.reprojection_px), err
 
 

@@ -20,7 +20,8 @@ from torch import Tensor
 
 __all__ = ["homogeneous", "skew", "camera_centers", "fundamental_from_poses", "essential_from_poses",
            "epipolar_residuals", "sampson_distance", "epipolar_distances", "epipolar_distance_matrix", "transfer", "project",
-           "unproject", "triangulate_pair", "triangulate_views", "matrix_to_quat", "quat_to_matrix", "rt_to_pose", "pose_to_rt"]
+           "unproject", "triangulate_pair", "triangulate_views", "triangulate_checked", "matrix_to_quat", "quat_to_matrix",
+           "rt_to_pose", "pose_to_rt"]
 
 
 def homogeneous(xy: np.ndarray) -> np.ndarray:
@@ -236,6 +237,32 @@ def triangulate_views(P: np.ndarray, u: np.ndarray) -> np.ndarray:
     X = np.linalg.svd(rows)[2][..., -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         return X[:, :3] / X[:, 3:]
+
+
+def triangulate_checked(K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndarray
+                        ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangulate points from all their sightings at once (:func:`triangulate_views`) and
+    say how well each explains them, a batch at a time.
+
+    Args:
+        K, R, t: (B, m, 3, 3), (B, m, 3, 3), (B, m, 3) intrinsics and world→camera poses of
+            each sighting's camera; xy: (B, m, 2) the sightings, pixels.
+
+    Returns:
+        X (B, 3) world points; err (B,) the largest reprojection error over the sightings
+        (inf where not finite); in_front (B,) X is finite and in front of every camera.
+    """
+    u = np.einsum("bmij,bmj->bmi", np.linalg.inv(K), np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1))
+    u = u[..., :2] / u[..., 2:]
+    X = triangulate_views(np.concatenate([R, t[..., None]], axis=-1), u)
+    cam = np.einsum("bmij,bj->bmi", R, X) + t                               # (B, m, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = np.einsum("bmij,bmj->bmi", K, cam)
+        px = px[..., :2] / px[..., 2:]
+    err = np.linalg.norm(px - xy, axis=-1)
+    err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
+    in_front = (cam[..., 2] > 0).all(axis=1) & np.isfinite(X).all(axis=1)
+    return X, err, in_front
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@ from typing import Dict, List, Tuple
 
 import numpy as np
 
-from .geometry import project, triangulate_views, unproject
+from .geometry import triangulate_checked, unproject
 
 __all__ = ["LandmarkMap", "MapConfig"]
 
@@ -95,16 +95,9 @@ class LandmarkMap:
         parallax = np.degrees(np.arccos(np.clip(rays @ rays.T, -1.0, 1.0))).max()
         if parallax < cfg.min_parallax_deg or np.ptp(centers, axis=0).max() <= 0:
             return None
-        P = np.array([[np.hstack([s.R, s.t[:, None]]) for s in sightings]])
-        u = np.array([[unproject(s.K, s.xy[None])[0, :2] for s in sightings]])
-        X = triangulate_views(P, u)[0]
-        if not np.all(np.isfinite(X)):
-            return None
-        for s in sightings:
-            uv, z = project(s.K, s.R, s.t, X[None])
-            if z[0] <= 0 or np.linalg.norm(uv[0] - s.xy) > cfg.max_reprojection_px:
-                return None
-        return X
+        K, R, t, xy = (np.array([[getattr(s, f) for s in sightings]]) for f in ("K", "R", "t", "xy"))
+        X, err, in_front = triangulate_checked(K, R, t, xy)
+        return X[0] if in_front[0] and err[0] <= cfg.max_reprojection_px else None
 
     def arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(M,) ids, (M, 3) points and (M,) sighting counts of the mapped landmarks, id order."""
