@@ -17,7 +17,7 @@ import numpy as np
 
 from ..geometry import project
 from ..problem import Problem
-from .synthetic import DEFAULT_DESCRIPTOR_NOISE, _observe_descriptors, _point_descriptors, rng_of
+from .synthetic import DEFAULT_DESCRIPTOR_NOISE, _observe_descriptors, _point_descriptors, distractors, rng_of
 
 __all__ = ["RigSequenceConfig", "rig_sequence", "rig_windows"]
 
@@ -109,14 +109,12 @@ def rig_windows(config: RigSequenceConfig = RigSequenceConfig(), rng=None, start
                                   & (uv[:, 1] >= 0) & (uv[:, 1] < h))
             xy = uv[seen] + cfg.pixel_noise * rng.standard_normal((seen.size, 2))
             d = _observe_descriptors(cfg.descriptor_kind, raw[seen], cfg.sigma, rng)
-            n_d = int(round(cfg.distractor_fraction / (1 - cfg.distractor_fraction) * seen.size))
-            xy_d = np.stack([rng.uniform(0, w - 1, n_d), rng.uniform(0, h - 1, n_d)], 1)
-            d_d = _observe_descriptors(cfg.descriptor_kind, _point_descriptors(cfg.descriptor_kind, n_d,
-                                                                               cfg.descriptor_dim, rng), cfg.sigma, rng)
-            order = rng.permutation(seen.size + n_d)
+            xy_d, d_d = distractors(cfg.descriptor_kind, cfg.descriptor_dim, cfg.sigma, cfg.distractor_fraction,
+                                    seen.size, cfg.image_size, 0.0, rng)
+            order = rng.permutation(seen.size + xy_d.shape[0])
             kps.append(np.clip(np.concatenate([xy, xy_d])[order], 0, [w - 1, h - 1]))
             descs.append(np.concatenate([d, d_d])[order])
-            pids.append(np.concatenate([seen, np.full(n_d, -1)])[order])
+            pids.append(np.concatenate([seen, np.full(xy_d.shape[0], -1)])[order])
             offsets.append(offsets[-1] + order.size)
             Rs.append(R)
             ts.append(tvec)

@@ -107,6 +107,21 @@ def _point_descriptors(kind: str, n: int, dim: int, rng: np.random.Generator) ->
     return rng.standard_normal((n, dim))
 
 
+def distractors(kind: str, dim: int, sigma: float, fraction: float, n_seen: int, image_size: Tuple[int, int],
+                border_px: float, rng: np.random.Generator) -> Tuple[np.ndarray, np.ndarray]:
+    """Keypoints that image no scene point, ``fraction`` of a view's keypoints beside its
+    ``n_seen`` true ones: uniform in the image (``border_px`` from its edges), each with a noisy
+    observation of its own random descriptor.
+
+    Shapes: -> uv (n_d, 2) pixels, descriptors (n_d, dim) float32.
+    """
+    w, h = image_size
+    n_d = int(round(fraction / (1.0 - fraction) * n_seen)) if fraction > 0 else 0
+    uv = np.stack([rng.uniform(border_px, w - 1 - border_px, n_d), rng.uniform(border_px, h - 1 - border_px, n_d)],
+                  axis=1)
+    return uv, _observe_descriptors(kind, _point_descriptors(kind, n_d, dim, rng), sigma, rng)
+
+
 def _observe_descriptors(kind: str, raw: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """One noisy observation of each raw descriptor, normalised like the detector would.
 
@@ -420,13 +435,10 @@ def random_scene_problem(config: SceneConfig = SceneConfig(), rng: RngLike = Non
         o = point_ori[pts] - rolls[v] + ori_noise * rng.standard_normal(pts.size)
         g = np.where(n_seen[pts] >= 2, pts, -1)
 
-        f = cfg.distractor_fraction
-        n_d = int(round(f / (1.0 - f) * pts.size)) if f > 0 else 0
+        uv_d, d_d = distractors(cfg.descriptor_kind, cfg.descriptor_dim, sigma, cfg.distractor_fraction, pts.size,
+                                cfg.image_size, cfg.border_px, rng)
+        n_d = uv_d.shape[0]
         if n_d:
-            b = cfg.border_px
-            uv_d = np.stack([rng.uniform(b, w - 1 - b, n_d), rng.uniform(b, h - 1 - b, n_d)], axis=1)
-            raw_d = _point_descriptors(cfg.descriptor_kind, n_d, cfg.descriptor_dim, rng)
-            d_d = _observe_descriptors(cfg.descriptor_kind, raw_d, sigma, rng)
             s_d = cfg.scale_median * np.exp(cfg.scale_log_std * rng.standard_normal(n_d))
             o_d = rng.uniform(-math.pi, math.pi, n_d)
             uv, d = np.concatenate([uv, uv_d]), np.concatenate([d, d_d])
