@@ -136,3 +136,16 @@ def test_descriptor_fallback_leaves_normal_windows_alone(one_torch_thread):
     a, b = solvers.create("gcn").solve(problem), solvers.create("gcn:descriptor_fallback=false").solve(problem)
     np.testing.assert_array_equal(a.track, b.track)
     np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+
+
+def test_device_setting_is_checked_before_any_model_is_loaded():
+    with pytest.raises(ValueError, match="device"):
+        solvers.create("gcn:device=tpu-please")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="sees no CUDA device"):
+            solvers.create("gcn:device=cuda")
+    else:  # a GPU machine: the forward pass runs there and scores like the CPU's (float order differs)
+        problem = load_problem(HELD_OUT)
+        cpu, gpu = (score_result(problem, solvers.create(f"gcn:device={d}").solve(problem))["F1"]
+                    for d in ("cpu", "cuda"))
+        assert abs(cpu - gpu) < 0.005

@@ -88,6 +88,12 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         if not 0.0 <= self.unverified_threshold <= 1.0:
             raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
+        try:
+            device = torch.device(self.device)
+        except RuntimeError as exc:
+            raise ValueError(f"device: {exc}") from None
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device '{self.device}': this torch ({torch.__version__}) sees no CUDA device")
 
 
 @functools.lru_cache(maxsize=4)
