@@ -20,6 +20,11 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
   in no track only continues landmarks (one sighting of a new point is no landmark yet);
 - landmarks not seen for ``max_age_s`` are retired: the state stays bounded on endless streams.
 
+The cost follows the candidates, not keypoints x landmarks: one descriptor product, then the
+image gate from a k-d tree of the last sightings and the cross-camera pairs from the similarity
+threshold; every later step works on those pairs (``test_landmarks`` checks them against the
+rule written as dense matrices).
+
 Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
 from __future__ import annotations
@@ -28,6 +33,7 @@ import dataclasses
 from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .descriptors import cosine_distance
 
@@ -84,57 +90,67 @@ class LandmarkTracker:
             self._reset(desc.shape[1])
         self._retire(stamp_ns)
         units = _units(track)
-        L = self._ids.size
         best_lm = np.full(len(units), -1)
         best_score = np.zeros(len(units))
-        if L and n:
-            sim = desc @ self._desc.T                                   # (N, L)
+        if self._ids.size and n:
             self._camera_columns(camera_ids)
-            need = np.empty((n, L), np.float32)
-            for v, cam in enumerate(camera_ids):
-                rows = slice(int(view_offsets[v]), int(view_offsets[v + 1]))
-                kx, ky = keypoints[rows, 0:1].astype(np.float32), keypoints[rows, 1:2].astype(np.float32)
-                near_any = np.zeros((kx.shape[0], L), bool)
-                for col in self._cams.values():  # near its last sighting in any camera
-                    lx, ly = self._xy[:, col, 0].astype(np.float32), self._xy[:, col, 1].astype(np.float32)
-                    near_any |= (kx - lx) ** 2 + (ky - ly) ** 2 <= np.float32(cfg.gate_px ** 2)  # NaN: False
-                seen = ~np.isnan(self._xy[:, self._cams[cam], 0])
-                # seen by this camera: only a keypoint near one of its sightings continues it, at the
-                # usual similarity; not seen by it: the point moved in from another camera, a higher one
-                need[rows] = np.where(seen[None], np.where(near_any, cfg.min_similarity, np.inf), cfg.cross_similarity)
-            score = np.where(sim >= need, sim, -np.inf)
-            # each unit's best member per landmark, all units at once: rows grouped by unit
-            rows = np.concatenate(units)
-            starts = np.cumsum([0] + [m.size for m in units[:-1]])
-            unit_score = np.maximum.reduceat(score[rows], starts, axis=0)    # (U, L)
-            first_lm = unit_score.argmax(1)
-            first = unit_score[np.arange(len(units)), first_lm]
-            if L > 1:
-                second = np.partition(unit_score, L - 2, axis=1)[:, L - 2]
-            else:
-                second = np.full(len(units), -np.inf)
-            second = np.where(np.isfinite(second), second, -1.0)
-            ok = np.isfinite(first) & ((cosine_distance(first) < cfg.ratio * cosine_distance(second)) | (second < 0))
-            best_lm = np.where(ok, first_lm, -1)
-            best_score = np.where(ok, first, 0.0)
+            unit, lm, score = self._candidates(camera_ids, view, keypoints, desc, units)
+            best_lm, best_score = _best_per_unit(unit, lm, score, len(units), cfg.ratio)
+        # units take landmarks one-to-one, best score first; a track left without one is a new point
+        order = np.argsort(-best_score, kind="stable")
+        ranked_lm = best_lm[order]
+        claims = np.flatnonzero(ranked_lm >= 0)
+        winners = np.zeros(len(units), bool)
+        winners[claims[np.unique(ranked_lm[claims], return_index=True)[1]]] = True
+        continued = order[winners]
+        sizes = np.array([m.size for m in units])
+        founders = order[~winners & (sizes[order] >= 2)]
         ids = np.full(n, -1, np.int64)
-        taken = set()
-        continued = []  # (unit, landmark)
-        for u in np.argsort(-best_score, kind="stable"):
-            members = units[u]
-            j = int(best_lm[u])
-            if j >= 0 and j not in taken:
-                taken.add(j)
-                continued.append((u, j))
-                ids[members] = self._ids[j]
-            elif members.size >= 2:  # a track: a new point
-                j = self._found(members, camera_ids, view, keypoints, desc, stamp_ns)
-                ids[members] = self._ids[j]
-        if continued:
-            self._sighted(continued, units, camera_ids, view, keypoints, desc, stamp_ns)
+        if continued.size:
+            self._sighted(continued, best_lm[continued], units, camera_ids, view, keypoints, desc, stamp_ns)
+            ids[np.concatenate([units[u] for u in continued])] = np.repeat(self._ids[best_lm[continued]],
+                                                                            sizes[continued])
+        if founders.size:
+            first = self._found([units[u] for u in founders], camera_ids, view, keypoints, desc, stamp_ns)
+            ids[np.concatenate([units[u] for u in founders])] = np.repeat(self._ids[first:], sizes[founders])
         born_of = dict(zip(self._ids.tolist(), self._born_ns.tolist()))
         ages = np.array([stamp_ns - born_of[i] if i >= 0 else -1 for i in ids.tolist()], np.int64)
         return ids, ages
+
+    def _candidates(self, camera_ids, view, keypoints, desc, units):
+        """Every (unit, landmark, score) that passes the gate and its similarity (module docstring).
+
+        Sparse: image-gated pairs come from a k-d tree of the landmarks' last sightings, cross-camera
+        pairs from the similarity threshold, so the cost follows the candidates, not N x L.
+
+        Returns:
+            unit, landmark (K,) int64 and score (K,) float32, one row per (member, landmark).
+        """
+        cfg = self.config
+        sim = desc @ self._desc.T                                        # (N, L)
+        column = np.array([self._cams[c] for c in camera_ids])[view]     # (N,) keypoint's camera column
+        seen = ~np.isnan(self._xy[:, :, 0])                              # (L, cameras)
+        # near one of its last sightings in any camera; the tree only proposes (float64, a hair
+        # wider), the float32 test decides
+        sight_lm, sight_cam = np.nonzero(seen)
+        sight_xy = self._xy[sight_lm, sight_cam].astype(np.float32)
+        kxy = keypoints.astype(np.float32)
+        near = cKDTree(kxy).sparse_distance_matrix(cKDTree(sight_xy), cfg.gate_px + 1e-3, output_type="ndarray")
+        i, lm = near["i"].astype(np.int64), sight_lm[near["j"]]
+        d = kxy[i] - sight_xy[near["j"]]
+        ok = d[:, 0] ** 2 + d[:, 1] ** 2 <= np.float32(cfg.gate_px ** 2)
+        i, lm = i[ok], lm[ok]
+        # a camera that saw it: only near pairs, at the usual similarity
+        gated = sim[i, lm]
+        own = seen[lm, column[i]] & (gated >= np.float32(cfg.min_similarity))
+        # a camera that did not: the point moved in from another camera, a higher similarity
+        cross_i, cross_lm = np.nonzero(sim >= np.float32(cfg.cross_similarity))
+        fresh = ~seen[cross_lm, column[cross_i]]
+        cross_i, cross_lm = cross_i[fresh], cross_lm[fresh]
+        unit_of = np.empty(len(view), np.int64)
+        unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), [m.size for m in units])
+        return (unit_of[np.concatenate([i[own], cross_i])], np.concatenate([lm[own], cross_lm]),
+                np.concatenate([gated[own], sim[cross_i, cross_lm]]))
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:
@@ -160,10 +176,9 @@ class LandmarkTracker:
         self._born_ns, self._seen_ns = self._born_ns[keep], self._seen_ns[keep]
         self._xy = self._xy[keep]
 
-    def _sighted(self, continued, units, camera_ids, view, keypoints, desc, stamp_ns) -> None:
-        """Update the landmarks ``continued`` ((unit, landmark) pairs) with their units, at once."""
+    def _sighted(self, us, js, units, camera_ids, view, keypoints, desc, stamp_ns) -> None:
+        """Update the landmarks ``js`` with their units ``us`` ((K,) each), at once."""
         w = self.config.summary_weight
-        us, js = (np.array(x, np.int64) for x in zip(*continued))
         rows = np.concatenate([units[u] for u in us])
         sizes = np.array([units[u].size for u in us])
         unit_mean = np.add.reduceat(desc[rows], np.cumsum(np.r_[0, sizes[:-1]]), axis=0) / sizes[:, None]
@@ -174,20 +189,26 @@ class LandmarkTracker:
         column = np.array([self._cams[c] for c in camera_ids])
         self._xy[np.repeat(js, sizes), column[view[rows]]] = keypoints[rows]
 
-    def _found(self, members, camera_ids, view, keypoints, desc, stamp_ns) -> int:
-        mean = desc[members].mean(0)
-        self._ids = np.append(self._ids, self._next_id)
-        self._desc = np.vstack([self._desc, (mean / max(float(np.linalg.norm(mean)), 1e-12))[None]])
-        self._born_ns = np.append(self._born_ns, stamp_ns)
-        self._seen_ns = np.append(self._seen_ns, stamp_ns)
+    def _found(self, tracks, camera_ids, view, keypoints, desc, stamp_ns) -> int:
+        """New landmarks for ``tracks`` (member arrays), ids in that order; returns the first's index."""
         self._camera_columns(camera_ids)
-        xy = np.full((1, len(self._cams), 2), np.nan)
-        for m in members.tolist():
-            xy[0, self._cams[camera_ids[view[m]]]] = keypoints[m]
+        k = len(tracks)
+        summary = np.empty((k, desc.shape[1]), np.float32)
+        xy = np.full((k, len(self._cams), 2), np.nan)
+        for t, members in enumerate(tracks):
+            mean = desc[members].mean(0)
+            summary[t] = mean / max(float(np.linalg.norm(mean)), 1e-12)
+            for m in members.tolist():
+                xy[t, self._cams[camera_ids[view[m]]]] = keypoints[m]
+        first = self._ids.size
+        self._ids = np.concatenate([self._ids, self._next_id + np.arange(k)])
+        self._desc = np.concatenate([self._desc, summary])
+        self._born_ns = np.concatenate([self._born_ns, np.full(k, stamp_ns, np.int64)])
+        self._seen_ns = np.concatenate([self._seen_ns, np.full(k, stamp_ns, np.int64)])
         self._xy = np.concatenate([self._xy, xy])
-        self._next_id += 1
-        self.born += 1
-        return self._ids.size - 1
+        self._next_id += k
+        self.born += k
+        return first
 
 
 def _units(track: np.ndarray) -> List[np.ndarray]:
@@ -200,6 +221,35 @@ def _units(track: np.ndarray) -> List[np.ndarray]:
     ends = np.r_[starts[1:], np.flatnonzero(in_track)[-1] + 1] if starts.size else starts
     units = [order[s:e] for s, e in zip(starts, ends)]
     return units + [np.array([i]) for i in np.flatnonzero(track < 0)]
+
+
+def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units: int, ratio: float):
+    """Each unit's best landmark if it clears Lowe's ratio against the unit's second best.
+
+    A unit scores a landmark by its best member; the second best is the best score of any other
+    landmark.
+
+    Args:
+        unit, lm, score: (K,) candidate (unit, landmark) rows, a row per member, float32 scores.
+        n_units: U.
+    Returns:
+        (U,) landmark index (-1: none) and (U,) float32 its score (0: none). Ties go to the lower
+        landmark index.
+    """
+    best_lm = np.full(n_units, -1)
+    first = np.full(n_units, -np.inf, np.float32)
+    second = np.full(n_units, -np.inf, np.float32)
+    if unit.size:
+        order = np.lexsort((lm, -score, unit))
+        unit, lm, score = unit[order], lm[order], score[order]
+        head = np.r_[True, unit[1:] != unit[:-1]]
+        best_lm[unit[head]], first[unit[head]] = lm[head], score[head]
+        other = np.flatnonzero(lm != best_lm[unit])             # rows of another landmark than the best
+        runner = other[np.r_[True, unit[other][1:] != unit[other][:-1]]] if other.size else other
+        second[unit[runner]] = score[runner]
+    second = np.where(np.isfinite(second), second, -1.0)
+    ok = np.isfinite(first) & ((cosine_distance(first) < ratio * cosine_distance(second)) | (second < 0))
+    return np.where(ok, best_lm, -1), np.where(ok, first, 0.0)
 
 
 class PerCameraNNLinker:

@@ -2,6 +2,7 @@
 import numpy as np
 
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
+from gcn_match_ros.descriptors import cosine_distance
 from gcn_match_ros.landmark_metrics import landmark_scores
 from gcn_match_ros.landmarks import LandmarkConfig, LandmarkTracker, PerCameraNNLinker
 
@@ -102,3 +103,72 @@ def test_rig_sequences_have_exact_point_ids_and_shared_points_over_time():
         assert (p.gt_track >= 0).sum() > 20  # the cameras overlap
     a, b = set(truth[0][truth[0] >= 0].tolist()), set(truth[1][truth[1] >= 0].tolist())
     assert len(a & b) > 0.8 * len(a)  # consecutive windows share most points
+
+
+def _dense_choice(tracker, camera_ids, offsets, keypoints, descriptors, units):
+    """The association rule as plain matrices over every (keypoint, landmark): the reference the
+    tracker's sparse candidates must reproduce."""
+    cfg = tracker.config
+    desc = descriptors / np.linalg.norm(descriptors, axis=1, keepdims=True)
+    sim = desc @ tracker._desc.T
+    view = np.repeat(np.arange(len(camera_ids)), np.diff(offsets))
+    sight = tracker._xy                                                    # (L, cameras, 2), NaN: unseen
+    d2 = ((keypoints[:, None, None, :] - sight[None]) ** 2).sum(-1)        # (N, L, cameras)
+    near = (d2 <= cfg.gate_px ** 2).any(-1)                                # NaN compares False
+    own_seen = ~np.isnan(sight[:, [tracker._cams[camera_ids[v]] for v in view], 0]).T
+    need = np.where(own_seen, np.where(near, cfg.min_similarity, np.inf), cfg.cross_similarity)
+    score = np.where(sim >= need, sim, -np.inf)
+    choice = []
+    for members in units:
+        per_landmark = score[members].max(0)
+        ranked = np.argsort(-per_landmark, kind="stable")
+        first, second = per_landmark[ranked[0]], (per_landmark[ranked[1]] if ranked.size > 1 else -np.inf)
+        second = second if np.isfinite(second) else -1.0
+        ok = np.isfinite(first) and (cosine_distance(first) < cfg.ratio * cosine_distance(second) or second < 0)
+        choice.append(int(ranked[0]) if ok else -1)
+    return np.array(choice)
+
+
+def test_sparse_association_follows_the_dense_rule():
+    from gcn_match_ros.landmarks import _best_per_unit, _units
+
+    problems, _, stamps = rig_sequence(RigSequenceConfig(n_cameras=3, n_windows=8, n_points=600), rng=3)
+    tracker = LandmarkTracker()
+    rng = np.random.default_rng(0)
+    compared = 0
+    for p, stamp in zip(problems, stamps):
+        track = np.where(p.gt_track >= 0, p.gt_track, -1)
+        track[rng.random(track.size) < 0.2] = -1          # lone keypoints too
+        if len(tracker):
+            units = _units(track)
+            desc = p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)
+            view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
+            tracker._camera_columns(p.camera_ids)
+            best, _ = _best_per_unit(*tracker._candidates(p.camera_ids, view, p.keypoints,
+                                                          desc.astype(np.float32), units),
+                                     len(units), tracker.config.ratio)
+            dense = _dense_choice(tracker, p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, units)
+            agree = best == dense
+            # float64 here vs float32 there may flip a pair sitting exactly on a threshold
+            assert agree.mean() > 0.995 and (best >= 0).sum() > 100, (agree.mean(), (best >= 0).sum())
+            compared += 1
+        tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, track, stamp)
+    assert compared == 7
+
+
+def test_best_per_unit_known_answers():
+    from gcn_match_ros.landmarks import _best_per_unit
+
+    f = np.float32
+    # unit 0: two members score landmark 2 (0.9 and 0.6) and landmark 5 (0.5): best 2 by its best
+    #   member, second 0.5 -> distances sqrt(0.2) < 0.95 * sqrt(1.0): kept.
+    # unit 1: landmarks 3 and 1 tie at 0.8 -> the lower index, but the tie fails the ratio test.
+    # unit 2: one candidate -> no second best -> kept.  unit 3: no candidate.
+    unit = np.array([0, 0, 0, 1, 1, 2])
+    lm = np.array([2, 2, 5, 3, 1, 7])
+    score = np.array([0.6, 0.9, 0.5, 0.8, 0.8, 0.7], f)
+    best, best_score = _best_per_unit(unit, lm, score, 4, ratio=0.95)
+    assert best.tolist() == [2, -1, 7, -1]
+    assert best_score.tolist() == [f(0.9), 0.0, f(0.7), 0.0]
+    loose, _ = _best_per_unit(unit, lm, score, 4, ratio=1.01)
+    assert loose.tolist() == [2, 1, 7, -1]
