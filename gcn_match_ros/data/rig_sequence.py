@@ -97,17 +97,24 @@ def rig_windows(config: RigSequenceConfig = RigSequenceConfig(), rng=None, start
     raw = _point_descriptors(cfg.descriptor_kind, cfg.n_points, cfg.descriptor_dim, rng)
     yaws = (np.arange(cfg.n_cameras) - (cfg.n_cameras - 1) / 2) * math.radians(cfg.yaw_step_deg)
     cams = [f"cam{c}" for c in range(cfg.n_cameras)]
+    # only points within reach are projected (a long stream's corridor holds far more): a visible
+    # point has depth under max_depth and lies inside the field of view, so within this distance
+    reach = cfg.max_depth_m * math.sqrt(1 + (w / 2 / cfg.focal_length) ** 2 + (h / 2 / cfg.focal_length) ** 2) + 1.0
+    by_x = np.argsort(X[:, 0], kind="stable")
     for t in range(cfg.n_windows):
         heading = math.radians(cfg.yaw_rate_deg) * t
         centre = np.array([cfg.step_m * t, 0.0, 1.5])
+        lo, hi = np.searchsorted(X[by_x, 0], [centre[0] - reach, centre[0] + reach])
+        near = np.sort(by_x[lo:hi])
         kps, descs, pids, offsets, Rs, ts = [], [], [], [0], [], []
         for c in range(cfg.n_cameras):
             R = _rotation_yaw(heading + yaws[c])
             tvec = -R @ centre
-            uv, z = project(K, R, tvec, X)
-            seen = np.flatnonzero((z > 0.5) & (z < cfg.max_depth_m) & (uv[:, 0] >= 0) & (uv[:, 0] < w)
-                                  & (uv[:, 1] >= 0) & (uv[:, 1] < h))
-            xy = uv[seen] + cfg.pixel_noise * rng.standard_normal((seen.size, 2))
+            uv, z = project(K, R, tvec, X[near])
+            visible = np.flatnonzero((z > 0.5) & (z < cfg.max_depth_m) & (uv[:, 0] >= 0) & (uv[:, 0] < w)
+                                     & (uv[:, 1] >= 0) & (uv[:, 1] < h))
+            seen, uv = near[visible], uv[visible]
+            xy = uv + cfg.pixel_noise * rng.standard_normal((seen.size, 2))
             d = _observe_descriptors(cfg.descriptor_kind, raw[seen], cfg.sigma, rng)
             xy_d, d_d = distractors(cfg.descriptor_kind, cfg.descriptor_dim, cfg.sigma, cfg.distractor_fraction,
                                     seen.size, cfg.image_size, 0.0, rng)
