@@ -62,14 +62,11 @@ def run_sequence(solver_spec: str, cameras: int, seed: int, windows: int):
 def run_bag(solver_spec: str, path: Path):
     """(tracker scores, baseline scores, windows) on a labelled sample bag."""
     from gcn_match_ros.bags.contents import read_bag
-    from gcn_match_ros.windowing import WindowConfig, window_problem
 
-    contents = read_bag(path, progress=False)
-    windows = list(contents.windows(WindowConfig(cameras=tuple(contents.cameras)), flush=False))
-    problems = [window_problem(frames) for frames, _ in windows]
+    replay = read_bag(path, progress=False).replay_windows()
+    problems, stamps = replay.problems, replay.stamps_ns
     truth = [np.where(labels >= 0, labels, -1) if labels is not None else np.full(p.n_keypoints, -1)
-             for (_, labels), p in zip(windows, problems)]
-    stamps = [max(f.stamp_ns for f in frames) for frames, _ in windows]
+             for labels, p in zip(replay.labels, problems)]
     ours, base, _, _ = assign_ids(solver_spec, problems, stamps)
     return landmark_scores(ours, truth), landmark_scores(base, truth), len(problems)
 

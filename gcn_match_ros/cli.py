@@ -8,6 +8,7 @@
     gcn-match train --train DATA... --val DATA... -o RUN_DIR [--steps N] [--resume]
     gcn-match plot RUN_DIR... -o curves.png [--data DATA... --pr PNG --similarity PNG --histograms PNG]
     gcn-match make-bags --out bags/ [--scenes ...] [--detector sift|orb] [--cameras 3]
+    gcn-match stream BAG [--method gcn] [--window max_keypoints=500 ...] [-o DIR]   (a bag as the node sees it)
 
 ``torchrun --nproc_per_node=N -m gcn_match_ros.cli train ...`` trains data-parallel
 (:mod:`gcn_match_ros.learn.ddp`). Every failure caused by arguments or input files prints
@@ -30,11 +31,13 @@ import numpy as np
 
 from . import evaluation, plots, solvers
 from .bags import make as bag_make
+from .bags.contents import read_bag, window_labels
 from .bags.io import STORAGES, bag_info
 from .bags.typesys import KEYPOINTS_TYPE
 from .data import synthetic
 from .data.convert import convert
 from .data.scenes import DATA_ROOT, DatasetError
+from .landmark_metrics import landmark_scores
 from .graph import CorrespondenceGraph, GraphConfig
 from .learn import ddp
 from .learn.checkpoint import load_checkpoint
@@ -43,7 +46,9 @@ from .learn.model import GCN, GCNConfig, embed_problem
 from .learn.sources import DataSource, check_disjoint, data_source
 from .learn.train import train
 from .node_features import FeatureConfig, feature_dim
-from .problem import Problem, load_problem, save_result
+from .problem import Problem, load_problem, save_problem, save_result
+from .stream import StreamState, solve_stream
+from .windowing import WindowConfig, window_parameters
 
 __all__ = ["main", "build_parser"]
 
@@ -283,6 +288,63 @@ def _cmd_make_bags(args) -> int:
     return 0
 
 
+def _window_config(cameras: Sequence[str], settings: Sequence[str]) -> WindowConfig:
+    """The node's window parameters from ``name=value`` settings (the rest at their defaults)."""
+    known = {p.name: p for p in window_parameters()}
+    values: Dict[str, Any] = {}
+    for item in settings:
+        name, sep, text = item.partition("=")
+        if not sep or name not in known:
+            raise _UserError(f"--window '{item}': expected NAME=VALUE with NAME one of {', '.join(known)}")
+        try:
+            values[name] = type(known[name].default)(text)
+        except ValueError:
+            raise _UserError(f"--window '{item}': not a {type(known[name].default).__name__}") from None
+    return WindowConfig(cameras=tuple(cameras), **values)
+
+
+def _cmd_stream(args) -> int:
+    """A bag solved as one stream, window by window as the matcher node solves it on replay:
+    the same windows, tracks and persistent landmark ids (:func:`gcn_match_ros.stream.solve_stream`)."""
+    contents = read_bag(args.bag, progress=not args.quiet)
+    cameras = args.cameras or contents.cameras
+    replay = contents.replay_windows(_window_config(cameras, args.window))
+    if not replay.problems:
+        raise _UserError(f"{args.bag}: no window of the cameras {', '.join(cameras)} forms "
+                         f"(the bag's cameras: {', '.join(contents.cameras)})")
+    solver = solvers.create(args.method)
+    state = StreamState()
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+    ids_per_window = []
+    for k, (problem, labels, stamp, (result, landmarks)) in enumerate(zip(
+            replay.problems, replay.labels, replay.stamps_ns,
+            solve_stream(solver, replay.problems, replay.stamps_ns, state))):
+        ids_per_window.append(landmarks.ids)
+        new = np.unique(landmarks.ids[(landmarks.ids >= 0) & (landmarks.ages_ns == 0)]).size
+        if not args.quiet:
+            print(f"window {k}: {problem.n_views} views, {problem.n_keypoints} keypoints, "
+                  f"{int(result.track.max(initial=-1)) + 1} tracks, {np.unique(landmarks.ids[landmarks.ids >= 0]).size} "
+                  f"landmarks ({new} new), {result.seconds * 1e3:.0f} ms", flush=True)
+        if args.out:
+            if labels is not None:
+                problem.gt_track = window_labels(labels)
+            problem.name = f"{args.bag.stem}_window_{k:04d}"
+            save_problem(problem, args.out / f"window_{k:04d}.npz")
+            save_result(result, args.out / f"window_{k:04d}_result.npz",
+                        extra={"landmark_ids": landmarks.ids, "landmark_ages": landmarks.ages_s,
+                               "stamp_ns": np.int64(stamp)})
+    tracker = state.landmarks
+    print(f"{args.bag.name}: {len(replay.problems)} windows by {solver.describe()}; landmarks born "
+          f"{tracker.born}, live {len(tracker)}, retired {tracker.retired}"
+          + (f"; written to {args.out}" if args.out else ""))
+    if all(labels is not None for labels in replay.labels):
+        truth = [np.where(labels >= 0, labels, -1) for labels in replay.labels]
+        scores = landmark_scores(ids_per_window, truth)
+        print("against the bag's labels: " + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="gcn-match", description="Cycle-consistent multi-view keypoint matching.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -373,6 +435,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="replace existing bags")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_cmd_make_bags)
+
+    r = sub.add_parser("stream", help="solve a bag as one stream, as the matcher node does on replay "
+                                      "(tracks and persistent landmark ids)")
+    r.add_argument("bag", type=Path, help="a bag (.mcap / .db3 or a bag folder) with <camera>/keypoints topics")
+    r.add_argument("--method", default="gcn", help="the node's solver parameter, e.g. gcn or nn-ransac")
+    r.add_argument("--cameras", nargs="+", help="camera ids in window order (default: the bag's)")
+    r.add_argument("--window", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="the node's window parameters, e.g. max_keypoints=500 sync_tolerance=0.05")
+    r.add_argument("-o", "--out", type=Path, help="write each window's problem (window_NNNN.npz, with the "
+                                                   "bag's labels as gt_track) and result (window_NNNN_result.npz, "
+                                                   "plus landmark_ids, landmark_ages [s], stamp_ns)")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress")
+    r.set_defaults(func=_cmd_stream)
     return p
 
 

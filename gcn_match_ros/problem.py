@@ -305,8 +305,15 @@ def load_result(path) -> Result:
         raise FormatError(f"{path}: {exc}") from None
 
 
-def save_result(result: Result, path) -> None:
+def save_result(result: Result, path, extra: Optional[Dict[str, np.ndarray]] = None) -> None:
+    """Write ``result`` (the format's keys) and ``extra`` keys beside them (e.g. a stream's
+    ``landmark_ids``), which readers of the format ignore; an extra key may not replace one of
+    the format's."""
     arrays = {"track": result.track, "pair_rows": result.pair_rows, "pair_cols": result.pair_cols,
               "pair_scores": result.pair_scores, "seconds": np.float64(result.seconds),
               "method": np.str_(result.method)}
+    clash = sorted(set(extra or ()) & set(arrays))
+    if clash:
+        raise ValueError(f"extra result keys {clash} would replace the format's")
+    arrays.update(extra or {})
     atomic_write(path, lambda tmp: _savez(tmp, arrays))

@@ -48,6 +48,11 @@ class WindowLandmarks:
     ids: np.ndarray
     ages_ns: np.ndarray
 
+    @property
+    def ages_s(self) -> np.ndarray:
+        """(N,) float64 ages in seconds, -1 where there is no landmark (as ``MatchWindow`` carries them)."""
+        return np.where(self.ids >= 0, self.ages_ns * 1e-9, -1.0)
+
 
 def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int) -> Tuple[Result, WindowLandmarks]:
     """Solve one window of a stream (rig memory) and give its keypoints their landmarks.

@@ -280,3 +280,45 @@ def test_gcn_match_eval_table_json_and_pr_plot(tmp_path, capsys, synth_problems)
     assert_one_line_error(rc, err, "no file matches")
     rc, _, err = run_cli(capsys, "eval", synth_problems[0], "--methods", "nn,bogus", "-q")
     assert_one_line_error(rc, err, "unknown method 'bogus'")
+
+
+def test_gcn_match_stream_solves_a_bag_as_the_node_does(tmp_path, capsys, tiny_bags):
+    """The node's windows of the bag, in order, through one stream state: tracks and landmark ids
+    as solve_stream gives them (the node's own answer, test_ros_matcher_node), written per window."""
+    from gcn_match_ros import solvers
+    from gcn_match_ros.bags.contents import read_bag
+    from gcn_match_ros.problem import load_problem, load_result
+    from gcn_match_ros.stream import solve_stream
+
+    bag = tiny_bags[0]
+    rc, stdout, err = run_cli(capsys, "stream", bag, "--method", "nn", "-o", tmp_path / "out", "-q")
+    assert rc == 0, err
+    replay = read_bag(bag, progress=False).replay_windows()
+    expected = list(solve_stream(solvers.create("nn"), replay.problems, replay.stamps_ns))
+    assert len(expected) >= 4 and f"{len(expected)} windows by nn" in stdout
+    assert "against the bag's labels: id_precision" in stdout
+    for k, (result, landmarks) in enumerate(expected):
+        problem = load_problem(tmp_path / "out" / f"window_{k:04d}.npz")
+        written = load_result(tmp_path / "out" / f"window_{k:04d}_result.npz")
+        extra = np.load(tmp_path / "out" / f"window_{k:04d}_result.npz")
+        assert problem.n_keypoints == written.track.size and problem.gt_track is not None
+        np.testing.assert_array_equal(written.track, result.track)
+        np.testing.assert_array_equal(extra["landmark_ids"], landmarks.ids)
+        assert int(extra["stamp_ns"]) == replay.stamps_ns[k]
+        ids, ages = extra["landmark_ids"], extra["landmark_ages"]
+        assert np.all((ages >= 0) == (ids >= 0))
+        for t in np.unique(written.track[written.track >= 0]):  # a track is one landmark
+            assert np.unique(ids[written.track == t]).size == 1 and ids[written.track == t][0] >= 0
+    assert not (tmp_path / "out" / f"window_{len(expected):04d}.npz").exists()
+
+
+def test_gcn_match_stream_errors_are_one_line(tmp_path, capsys, tiny_bags):
+    bag = tiny_bags[0]
+    rc, _, err = run_cli(capsys, "stream", bag, "-q", "--method", "nn", "--cameras", "front", "rear")
+    assert_one_line_error(rc, err, "no window of the cameras front, rear")
+    rc, _, err = run_cli(capsys, "stream", bag, "-q", "--method", "nn", "--window", "max_keypionts=10")
+    assert_one_line_error(rc, err, "expected NAME=VALUE with NAME one of sync_tolerance")
+    rc, _, err = run_cli(capsys, "stream", bag, "-q", "--method", "nn", "--window", "max_keypoints=many")
+    assert_one_line_error(rc, err, "not a int")
+    rc, _, err = run_cli(capsys, "stream", tmp_path / "nothing.mcap", "-q")
+    assert_one_line_error(rc, err, "nothing.mcap")

@@ -61,7 +61,7 @@ def test_the_map_holds_the_landmarks_near_the_true_points():
                 pose_pubs[f.camera_id].publish(_pose(p.R[v], p.t[v], stamp))
             session.spin_until(lambda: False, timeout=0.2)  # the keypoints and poses arrive first
             matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
-                                                   landmark_ages=landmarks.ages_ns * 1e-9))
+                                                   landmark_ages=landmarks.ages_s))
             assert session.spin_until(lambda: len(clouds) == k + 1, timeout=10)
         cloud = clouds[-1]
         assert cloud.header.frame_id == "world" and cloud.point_step == 20 and cloud.width > 50

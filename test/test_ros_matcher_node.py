@@ -180,7 +180,7 @@ def test_matcher_reuses_the_rigs_models_and_answers_as_offline(harness_factory):
     for w, (result, landmarks) in zip(online, offline):
         np.testing.assert_array_equal(w.track, result.track)
         np.testing.assert_array_equal(w.landmark_ids, landmarks.ids)
-        np.testing.assert_allclose(w.landmark_ages, np.where(landmarks.ids >= 0, landmarks.ages_ns * 1e-9, -1), atol=1e-6)
+        np.testing.assert_allclose(w.landmark_ages, landmarks.ages_s, atol=1e-6)
     # the same scene in every window: the tracked points keep their ids, and age
     first, last = online[0], online[-1]
     tracked = first.landmark_ids >= 0

@@ -47,19 +47,20 @@ from __future__ import annotations
 import dataclasses
 import re
 from pathlib import Path
-from typing import Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Iterator, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 from tqdm import tqdm
 
 from ..geometry import pose_to_rt
 from ..stamps import ns_to_seconds, stamp_to_ns
-from ..windowing import Frame, WindowAssembler, WindowConfig, kept_rows
+from ..problem import Problem
+from ..windowing import Frame, WindowAssembler, WindowConfig, kept_rows, window_problem
 from .codec import camera_info_msg, frame_from_keypoints_msg, header_msg, keypoints_msg, pose_msg
 from .io import BagError, BagReader, BagWriter
 from .typesys import CAMERA_INFO_TYPE, KEYPOINTS_TYPE, LABELS_TYPE, POSE_TYPE
 
-__all__ = ["BagContents", "write_scene_bag", "read_bag", "bag_windows", "window_labels"]
+__all__ = ["BagContents", "ReplayWindows", "write_scene_bag", "read_bag", "bag_windows", "window_labels"]
 
 
 def write_scene_bag(path, frames_by_camera: Mapping[str, Sequence[Frame]],
@@ -182,6 +183,22 @@ class BagContents:
             for window in assembler.flush():
                 yield window, self._window_labels(window, config)
 
+    def replay_windows(self, config: Optional[WindowConfig] = None) -> "ReplayWindows":
+        """The windows the matcher node forms when this bag is replayed into it, as problems:
+        what an offline run must solve, in order, to reproduce the node's output
+        (:func:`gcn_match_ros.stream.solve_stream`).
+
+        Args:
+            config: the node's window parameters; None: its defaults with the bag's cameras.
+        """
+        config = config or WindowConfig(cameras=tuple(self.cameras))
+        frames, labels = [], []
+        for window, window_labels_ in self.windows(config, flush=False):  # the node never flushes
+            frames.append(window)
+            labels.append(window_labels_)
+        return ReplayWindows(frames=frames, problems=[window_problem(w) for w in frames], labels=labels,
+                             stamps_ns=[max(f.stamp_ns for f in w) for w in frames])
+
     def _window_labels(self, window: Sequence[Frame], config: WindowConfig) -> Optional[np.ndarray]:
         parts = []
         idx = self._index()
@@ -193,6 +210,21 @@ class BagContents:
                 lab = lab[kept_rows(orig.count, orig.scores, config.max_keypoints)]
             parts.append(np.asarray(lab, dtype=np.int64))
         return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+class ReplayWindows(NamedTuple):
+    """A bag's windows as the matcher node forms them (:meth:`BagContents.replay_windows`).
+
+    Attributes:
+        frames: per window its frames (views in camera order); problems: the same stacked
+            (``camera_ids`` set); labels: per window (N,) scene-global labels or None;
+        stamps_ns: per window its newest view stamp (the node's window stamp).
+    """
+
+    frames: List[List[Frame]]
+    problems: List[Problem]
+    labels: List[Optional[np.ndarray]]
+    stamps_ns: List[int]
 
 
 def window_labels(labels: np.ndarray) -> np.ndarray:

@@ -52,7 +52,6 @@ from ..solvers.gcn import DEFAULT_CHECKPOINT
 from ..stamps import stamp_to_ns
 from ..stream import solve_stream
 from ..track_image import draw_tracks
-from ..windowing import WindowConfig, window_problem
 from .conversions import match_window_to_arrays
 from .dds import FASTDDS_PROFILE_ENV, use_large_shm
 from .matcher_node import create_solver
@@ -306,8 +305,8 @@ def main(argv=None) -> int:
         return 1
     cameras = tuple(contents.cameras)
     # the windows the node will form on replay, formed once here (scoring, offline parity, the map)
-    bag_windows = [frames for frames, _ in contents.windows(WindowConfig(cameras=cameras), flush=False)]
-    expected = len(bag_windows)
+    replay = contents.replay_windows()
+    expected = len(replay.problems)
     _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
          f"{expected} windows; solver {args.solver}")
 
@@ -416,8 +415,8 @@ def main(argv=None) -> int:
     _log(f"  node diagnostics: frames received {received}; {diag.get('windows published', '?')} windows "
          f"published, drops: "
          f"{', '.join(f'{k} = {v}' for k, v in drops.items()) or 'none'}")
-    problems = [window_problem(frames) for frames in bag_windows]
-    same, total = offline_parity(col.windows, problems, [max(f.stamp_ns for f in frames) for frames in bag_windows],
+    problems = replay.problems
+    same, total = offline_parity(col.windows, problems, replay.stamps_ns,
                                  args.solver, args.checkpoint)
     _log(f"  offline (the bag's windows solved as one stream, gcn_match_ros.stream.solve_stream): tracks and "
          f"landmark ids identical to the node's in {same}/{total} windows")

@@ -417,7 +417,7 @@ class _Matcher:
             msg = result_to_match_window(frames, result, score_threshold=threshold, dense=dense,
                                          build_seconds=build, solve_seconds=stacked + result.seconds - build,
                                          method=result.method or self._method, landmark_ids=landmarks.ids,
-                                         landmark_ages=landmarks.ages_ns * 1e-9)
+                                         landmark_ages=landmarks.ages_s)
             validate_match_window(msg)
         except MatchWindowError as exc:
             self._drop_window("invalid_output")
