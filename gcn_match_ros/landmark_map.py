@@ -7,18 +7,20 @@ triangulates every landmark seen from two or more poses whose rays are not paral
 of every camera and reprojects within ``max_reprojection_px`` into every sighting; otherwise
 the landmark stays unmapped (its matches were wrong, or the baseline is too short). Sightings
 are bounded per landmark (the latest ``max_sightings``), landmarks unseen for ``max_age_s``
-are dropped: the map follows the stream in bounded memory.
+are dropped: the map follows the stream in bounded memory. :meth:`LandmarkMap.held_out_errors`
+scores the map on a window before it is added (reprojection error in views it has not used).
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, List, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
 from .geometry import triangulate_checked, unproject
+from .problem import Problem
 
-__all__ = ["LandmarkMap", "MapConfig"]
+__all__ = ["LandmarkMap", "MapConfig", "held_out_reprojection"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,6 +87,30 @@ class LandmarkMap:
                 mapped.append(lm)
         return mapped
 
+    def held_out_errors(self, landmark_ids: np.ndarray, keypoints: np.ndarray, view_index: np.ndarray,
+                        K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """How well the map predicts a window it has not seen: the reprojection error of each
+        keypoint whose landmark is mapped, its point projected into the keypoint's view. Call it
+        before :meth:`add_window` of the same window (then the window is held out); a wrong id
+        continuation or a badly triangulated point shows as a large error.
+
+        Args: as :meth:`add_window`.
+
+        Returns:
+            (M,) pixels, one per keypoint of a mapped landmark (inf: the point is behind the camera).
+        """
+        ids = np.asarray(landmark_ids)
+        rows = [i for i in np.flatnonzero(ids >= 0).tolist() if int(ids[i]) in self.points]
+        if not rows:
+            return np.zeros(0)
+        X = np.array([self.points[int(ids[i])] for i in rows])                 # (M, 3)
+        v = np.asarray(view_index)[rows]
+        cam = np.einsum("mij,mj->mi", R[v], X) + t[v]
+        px = np.einsum("mij,mj->mi", K[v], cam)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.linalg.norm(px[:, :2] / px[:, 2:] - np.asarray(keypoints, np.float64)[rows], axis=1)
+        return np.where((cam[:, 2] > 0) & np.isfinite(err), err, np.inf)
+
     def _triangulate(self, sightings: List[_Sighting]):
         cfg = self.config
         if len(sightings) < 2:
@@ -105,3 +131,27 @@ class LandmarkMap:
         pts = np.array([self.points[i] for i in ids.tolist()]).reshape(-1, 3)
         counts = np.array([len(self._sightings[i]) for i in ids.tolist()], np.int64)
         return ids, pts, counts
+
+
+def held_out_reprojection(problems: Sequence[Problem], landmark_ids: Sequence[np.ndarray], stamps_ns: Sequence[int],
+                          config: MapConfig = MapConfig()) -> Dict[str, float]:
+    """A mapping consumer's view of a sequence's landmark ids: each window is predicted by the
+    map of the windows before it (:meth:`LandmarkMap.held_out_errors`), then added.
+
+    Args:
+        problems: the windows with K, R, t (world→camera) of every view; landmark_ids: per
+            window (N,) ids; stamps_ns: the windows' times.
+
+    Returns:
+        median_px: median held-out reprojection error; within_px: share within the map's
+        ``max_reprojection_px``; predicted: sightings predicted (mapped landmarks seen again).
+    """
+    landmark_map, errors = LandmarkMap(config), []
+    for p, ids, stamp in zip(problems, landmark_ids, stamps_ns):
+        sightings = (ids, p.keypoints, p.view_index, p.K, p.R, p.t)
+        errors.append(landmark_map.held_out_errors(*sightings))
+        landmark_map.add_window(*sightings, stamp)
+    err = np.concatenate(errors) if errors else np.zeros(0)
+    return {"median_px": float(np.median(err)) if err.size else float("nan"),
+            "within_px": float(np.mean(err <= config.max_reprojection_px)) if err.size else float("nan"),
+            "predicted": float(err.size)}

@@ -77,6 +77,9 @@ def test_the_map_holds_the_landmarks_near_the_true_points():
                                              X[np.bincount(last_truth[sel]).argmax()]))
         assert len(errors) > 50 and np.median(errors) < 0.5, np.median(errors)
         assert node.counts["maps published"] == 4 and node.counts["windows without poses"] == 0
+        # the map predicted the later windows' sightings of its landmarks (held out when predicted)
+        held_out = np.asarray(node.held_out_px)
+        assert held_out.size > 100 and np.median(held_out) < 3.0, (held_out.size, np.median(held_out))
 
 
 def test_a_landmark_map_refuses_points_that_do_not_reproject():
@@ -96,3 +99,24 @@ def test_a_landmark_map_refuses_points_that_do_not_reproject():
     # landmarks unseen for max_age are dropped
     m.add_window(np.array([-1]), xy[:1], np.array([0]), K[None], R[None], ts[0][None], int(10e9))
     assert 7 not in m.points
+
+
+def test_held_out_errors_predict_a_new_view_from_the_map():
+    K = np.array([[400.0, 0, 320], [0, 400, 240], [0, 0, 1]])
+    R = np.eye(3)
+    ts = [np.zeros(3), np.array([-0.5, 0, 0]), np.array([-1.0, 0, 0])]
+    X = np.array([0.3, -0.2, 5.0])
+    xy = np.array([(K @ (R @ X + t))[:2] / (K @ (R @ X + t))[2] for t in ts])
+    m = LandmarkMap()
+    # nothing mapped yet: nothing predicted
+    assert m.held_out_errors(np.array([7]), xy[:1], np.array([0]), K[None], R[None], ts[0][None]).size == 0
+    m.add_window(np.array([7, 7]), xy[:2], np.array([0, 1]), np.stack([K, K]), np.stack([R, R]), np.stack(ts[:2]), 0)
+    # the third view, not used to map: the right sighting lands on it, one 8 px off misses by 8 px,
+    # an unmapped id and a keypoint without landmark are not scored
+    third = np.array([xy[2], xy[2] + [0.0, 8.0], xy[2], xy[2]])
+    err = m.held_out_errors(np.array([7, 7, 9, -1]), third, np.zeros(4, int), K[None], R[None], ts[2][None])
+    np.testing.assert_allclose(err, [0.0, 8.0], atol=1e-6)
+    # a camera the point is behind: inf
+    behind = m.held_out_errors(np.array([7]), xy[2:], np.array([0]), K[None], np.diag([1.0, -1, -1])[None],
+                               ts[2][None])
+    assert np.isinf(behind).all()

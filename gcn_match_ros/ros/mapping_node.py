@@ -7,8 +7,12 @@ world, as the sample bags carry it). With poses, each window's sightings go into
 :class:`gcn_match_ros.landmark_map.LandmarkMap` (landmarks seen from two or more poses are
 triangulated and kept when they reproject within 3 px in front of every camera) and the map is
 published as ``~/landmarks`` (``sensor_msgs/PointCloud2``: x, y, z float32, ``id`` and
-``sightings`` uint32, in the poses' frame). Without poses it still reports landmark statistics
-(landmarks in the window, continued from the previous one, new; throttled log).
+``sightings`` uint32, in the poses' frame). Before a window enters the map, the map predicts
+it: the reprojection error of every sighting of an already mapped landmark in that held-out
+window (``held_out_px``: the last ``held_out_window`` of them; logged as median and share
+within 3 px) — what a consumer sees of wrong id continuations. Without poses it still reports
+landmark statistics (landmarks in the window, continued from the previous one, new; throttled
+log).
 
 Callbacks only buffer (the last ``buffer`` keypoint and pose messages per camera); windows are
 processed in the MatchWindow callback, a bounded amount of work per window.
@@ -66,6 +70,8 @@ class MappingNode(Node):
         self.counts = collections.Counter()
         self._previous = set()
         self._all = set()
+        #: held-out reprojection errors [px] of the latest sightings of mapped landmarks
+        self.held_out_px = collections.deque(maxlen=2000)
         for cam in cameras:
             self.create_subscription(Keypoints, f"{cam}/keypoints", lambda m, c=cam: self._keypoints.add(c, m),
                                      qos_profile_sensor_data)
@@ -100,14 +106,20 @@ class MappingNode(Node):
         Rt = [pose_to_rt([p.pose.position.x, p.pose.position.y, p.pose.position.z],
                          [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w])
               for p in poses]
-        self.map.add_window(w.landmark_ids, np.concatenate([f.keypoints for f in frames]), w.view_index,
-                            np.stack([f.K for f in frames]), np.stack([r for r, _ in Rt]),
-                            np.stack([t for _, t in Rt]), w.stamp_ns)
+        sightings = (w.landmark_ids, np.concatenate([f.keypoints for f in frames]), w.view_index,
+                     np.stack([f.K for f in frames]), np.stack([r for r, _ in Rt]), np.stack([t for _, t in Rt]))
+        self.held_out_px.extend(self.map.held_out_errors(*sightings).tolist())
+        self.map.add_window(*sightings, w.stamp_ns)
         ids, points, sightings = self.map.arrays()
         header = msg.header
         header.frame_id = poses[0].header.frame_id
         self._pub.publish(landmark_cloud(ids, points, sightings, header))
         self.counts["maps published"] += 1
+        held_out = np.asarray(self.held_out_px)
+        if held_out.size:
+            stats += (f"; held-out reprojection median {np.median(held_out):.1f} px, "
+                      f"{np.mean(held_out <= self.map.config.max_reprojection_px):.0%} within "
+                      f"{self.map.config.max_reprojection_px:g} px (last {held_out.size} sightings)")
         self.get_logger().info(f"{stats}; {len(ids)} landmarks mapped", throttle_duration_sec=_THROTTLE_S)
 
 
