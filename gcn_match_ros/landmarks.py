@@ -14,7 +14,10 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
   camera's image can move to another camera's place — the sample bags slide a "rig" along one
   image sequence), a member of a camera that did not see it needs ``cross_similarity``;
 - the best landmark of each unit is accepted when it clears ``min_similarity`` and Lowe's
-  ratio against the unit's second best; units then take landmarks one-to-one, best score first
+  ratio against the unit's second best, and (``verify_motion``) when its members moved like the
+  other continuations between the same two frames (a two-view model fitted per pair of frames,
+  pose-free: repetitive structure passes the descriptor and gate tests but not this one);
+  units then take landmarks one-to-one, best score first
   (a landmark continues at most one unit, so a window never gives two points one id);
 - a track left without a landmark founds a new one (ids count up, never reused); a keypoint
   in no track only continues landmarks (one sighting of a new point is no landmark yet);
@@ -32,12 +35,22 @@ from __future__ import annotations
 import dataclasses
 from typing import Dict, List, Sequence, Tuple
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .descriptors import cosine_distance
+from .edges.verify import MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, fit_pair, residuals
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
+
+#: a continuation agrees with the motion model within this many times the model's tolerance
+MOTION_SLACK = 2.0
+#: continuations are mostly right (inlier shares ~0.9): USAC without local optimisation finds the
+#: same inliers at half the cost of the solver's estimator (~0.9 vs 1.9 ms a fit)
+MOTION_ESTIMATOR = cv2.USAC_FAST
+#: the motion is checked with H when H explains at least this share of F's pairs
+MOTION_PLANAR_RATIO = 0.95
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +66,7 @@ class LandmarkConfig:
     gate_px: float = 40.0
     summary_weight: float = 0.3   # weight of a new sighting in the running-mean descriptor
     max_age_s: float = 2.0
+    verify_motion: bool = True
 
 
 class LandmarkTracker:
@@ -96,6 +110,8 @@ class LandmarkTracker:
             self._camera_columns(camera_ids)
             unit, lm, score = self._candidates(camera_ids, view, keypoints, desc, units)
             best_lm, best_score = _best_per_unit(unit, lm, score, len(units), cfg.ratio)
+            if cfg.verify_motion:
+                best_lm = self._motion_checked(best_lm, units, camera_ids, view, keypoints)
         # units take landmarks one-to-one, best score first; a track left without one is a new point
         order = np.argsort(-best_score, kind="stable")
         ranked_lm = best_lm[order]
@@ -151,6 +167,51 @@ class LandmarkTracker:
         unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), [m.size for m in units])
         return (unit_of[np.concatenate([i[own], cross_i])], np.concatenate([lm[own], cross_lm]),
                 np.concatenate([gated[own], sim[cross_i, cross_lm]]))
+
+    def _motion_checked(self, best_lm, units, camera_ids, view, keypoints):
+        """The continuations that agree with the image motion since the last sightings.
+
+        Each continuation pairs a member's pixel with its landmark's last sighting in a camera;
+        per pair of frames (last camera at the time of the last sighting, current camera) the
+        pairs of all continuations fit a two-view model
+        (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains clearly more pairs).
+        Where that model has the support of a trusted one (``edges.verify``), a continuation most of whose checked pairs it rejects is dropped (one
+        wrong member of a track does not undo the whole track's continuation): what descriptors
+        and the image gate cannot tell apart on repetitive structure, the motion of the other
+        points can.
+        """
+        cont = np.flatnonzero(best_lm >= 0)
+        if cont.size == 0:
+            return best_lm
+        sizes = np.array([units[u].size for u in cont])
+        rows = np.concatenate([units[u] for u in cont])
+        unit_of_row = np.repeat(cont, sizes)
+        column = np.array([self._cams[c] for c in camera_ids])[view[rows]]
+        last = self._xy[best_lm[unit_of_row]]                              # (R, cameras, 2)
+        pair_row, pair_cam = np.nonzero(~np.isnan(last[:, :, 0]))          # a pair per earlier sighting
+        xa, xb = last[pair_row, pair_cam], keypoints[rows[pair_row]].astype(np.float64)
+        # one motion per pair of frames: (last camera, its frame's time, current camera)
+        seen_ns = self._seen_ns[best_lm[unit_of_row]][pair_row]
+        _, key = np.unique(np.stack([pair_cam, column[pair_row], seen_ns], 1), axis=0, return_inverse=True)
+        key = key.ravel()
+        votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
+        for k in np.unique(key):
+            sel = np.flatnonzero(key == k)
+            model = fit_pair(xa[sel], xb[sel], estimator=MOTION_ESTIMATOR) if sel.size >= MIN_SEEDS else None
+            if model is None:
+                continue
+            # H unless F explains clearly more pairs, counted by the residuals the check uses: a
+            # small rig motion makes H almost as good as F by the estimators' counts, yet near
+            # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
+            rh, rf = residuals(model, xa[sel], xb[sel])
+            inliers_h, inliers_f = int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
+            support = max(inliers_h, inliers_f)
+            if support < MIN_INLIERS or support < MIN_INLIER_RATIO * sel.size:
+                continue
+            agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
+                (rf <= MOTION_SLACK * model.epipolar_px)
+            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
+        return np.where(votes < 0, -1, best_lm)
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:

@@ -172,3 +172,27 @@ def test_best_per_unit_known_answers():
     assert best_score.tolist() == [f(0.9), 0.0, f(0.7), 0.0]
     loose, _ = _best_per_unit(unit, lm, score, 4, ratio=1.01)
     assert loose.tolist() == [2, 1, 7, -1]
+
+
+def test_a_continuation_against_the_motion_of_the_others_is_refused():
+    """Window 2 moves every point 6 px right; one point is gone and a look-alike (its descriptor)
+    sits 25 px below where it should be: within the image gate, against the motion."""
+    rng = np.random.default_rng(5)
+    P = 60
+    base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
+
+    def window(points_xy, descs):
+        n = len(points_xy)
+        return (np.array([0, n, 2 * n]), np.concatenate([points_xy, points_xy + [3.0, 0.0]]),
+                np.concatenate([descs, descs]).astype(np.float32), np.r_[np.arange(n), np.arange(n)])
+
+    first = window(xy, base)
+    moved = xy + [6.0, 0.0]
+    moved[0] += [0.0, 25.0]  # point 0 is gone; its look-alike sits here
+    second = window(moved, base + 0.02 * rng.normal(size=base.shape))
+    for verify, same in ((False, True), (True, False)):
+        tracker = LandmarkTracker(LandmarkConfig(verify_motion=verify))
+        ids1, _ = tracker.update(CAMS, *first, 0)
+        ids2, _ = tracker.update(CAMS, *second, PERIOD)
+        assert (ids2[0] == ids1[0]) == same
+        assert np.array_equal(ids2[1:P], ids1[1:P])  # the others continue either way

@@ -111,10 +111,11 @@ class PairModel:
 
 def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0,
              K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
-             epipolar_px: float = EPIPOLAR_PX) -> Optional[PairModel]:
+             epipolar_px: float = EPIPOLAR_PX, estimator: int = EPIPOLAR_ESTIMATOR) -> Optional[PairModel]:
     """H and F (each None if it fails) from seed pairs xa[i] <-> xb[i] (pixels); None when
     neither fits. With both intrinsics K_a, K_b (3, 3) the epipolar model is an essential
-    matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F.
+    matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F;
+    ``estimator``: OpenCV's method for F (pixels only).
 
     Shapes: xa, xb (S, 2).
     """
@@ -135,7 +136,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
         H = None
     calibrated = K_a is not None and K_b is not None
     F, nf = (_fit_essential(a, b, epipolar_px, K_a, K_b, seed) if calibrated
-             else _fit_fundamental(a, b, epipolar_px, seed))
+             else _fit_fundamental(a, b, epipolar_px, seed, estimator))
     if H is None and F is None:
         return None
     planar = H is not None and (F is None or nh >= PLANAR_RATIO * nf)
@@ -151,10 +152,11 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
                      px=px, epipolar_px=agree_px, epipolar_fit_px=epipolar_px)
 
 
-def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int) -> Tuple[Optional[np.ndarray], int]:
+def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int,
+                     estimator: int = EPIPOLAR_ESTIMATOR) -> Tuple[Optional[np.ndarray], int]:
     cv2.setRNGSeed(seed)
     try:
-        F, mf = cv2.findFundamentalMat(a, b, EPIPOLAR_ESTIMATOR, px, 0.999, 2000)
+        F, mf = cv2.findFundamentalMat(a, b, estimator, px, 0.999, 2000)
     except cv2.error:
         return None, 0
     if F is None or F.shape != (3, 3) or mf is None or int(mf.sum()) < MIN_SEEDS:
