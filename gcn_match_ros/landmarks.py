@@ -49,6 +49,9 @@ MOTION_SLACK = 2.0
 #: continuations are mostly right (inlier shares ~0.9): USAC without local optimisation finds the
 #: same inliers at half the cost of the solver's estimator (~0.9 vs 1.9 ms a fit)
 MOTION_ESTIMATOR = cv2.USAC_FAST
+#: a frame pair's model is fitted on at most this many of its pairs (the cost of a fit grows
+#: with them; ~0.8 ms for F at 128)
+MOTION_FIT_PAIRS = 128
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
 
@@ -197,7 +200,11 @@ class LandmarkTracker:
         votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
         for k in np.unique(key):
             sel = np.flatnonzero(key == k)
-            model = fit_pair(xa[sel], xb[sel], estimator=MOTION_ESTIMATOR) if sel.size >= MIN_SEEDS else None
+            if sel.size < MIN_SEEDS:
+                continue
+            # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
+            fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
+            model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR)
             if model is None:
                 continue
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
