@@ -178,10 +178,15 @@ class LandmarkTracker:
         per pair of frames (last camera at the time of the last sighting, current camera) the
         pairs of all continuations fit a two-view model
         (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains clearly more pairs).
-        Where that model has the support of a trusted one (``edges.verify``), a continuation most of whose checked pairs it rejects is dropped (one
-        wrong member of a track does not undo the whole track's continuation): what descriptors
+        Where that model has the support of a trusted one (``edges.verify``), a continuation
+        most of whose checked pairs it rejects is dropped (one wrong member of a track does not undo the whole track's continuation): what descriptors
         and the image gate cannot tell apart on repetitive structure, the motion of the other
-        points can.
+        points can. A lone keypoint's continuation that no trusted model can check is dropped
+        too: typically a point re-found after windows unseen, with too few companions to fit that
+        frame pair's motion, on a single sighting (on the sample bags such re-findings were
+        mostly wrong). A track's stays: two or more views of one point re-found together are
+        right on the generated rigs, and refusing them too fragmented landmarks there (1.1 ->
+        1.25 landmarks per point).
         """
         cont = np.flatnonzero(best_lm >= 0)
         if cont.size == 0:
@@ -198,6 +203,7 @@ class LandmarkTracker:
         _, key = np.unique(np.stack([pair_cam, column[pair_row], seen_ns], 1), axis=0, return_inverse=True)
         key = key.ravel()
         votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
+        checked = np.zeros(len(units), np.int64)  # per unit: pairs under a trusted model
         for k in np.unique(key):
             sel = np.flatnonzero(key == k)
             if sel.size < MIN_SEEDS:
@@ -218,7 +224,9 @@ class LandmarkTracker:
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
-        return np.where(votes < 0, -1, best_lm)
+            np.add.at(checked, unit_of_row[pair_row[sel]], 1)
+        lone = np.array([m.size == 1 for m in units])
+        return np.where((votes < 0) | ((checked == 0) & lone), -1, best_lm)
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:
