@@ -57,7 +57,7 @@ def scores(problems, stamps, ids, truth):
 
 def cells(m):
     """The table cells of one row of scores (map metrics '-' without poses)."""
-    fmt = {"id_precision": "{:.3f}", "within_px": "{:.3f}", "median_px": "{:.2f}", "predicted": "{:.0f}",
+    fmt = {"id_precision": "{:.3f}", "within_px": "{:.3f}", "median_px": "{:.3f}", "predicted": "{:.0f}",
            "landmarks": "{:.0f}"}
     return " | ".join(fmt.get(k, "{:.2f}").format(m[k]) if k in m else "-" for k in METRICS + MAP_METRICS)
 
@@ -134,9 +134,11 @@ def main(argv=None) -> int:
     head = ("| cameras | seed | ids by | " + " | ".join(METRICS + MAP_METRICS) + " | solve [ms/window] | ids [ms/window] |")
     lines = [head, "|" + "---|" * (len(METRICS + MAP_METRICS) + 5)]
     agg = {"tracker": [], "baseline": []}
+    overhead = {}  # cameras -> association / solve time per sequence
     for cams in args.cameras:
         for seed in args.seeds:
             ours, base, solve_s, track_s = run_sequence(args.solver, cams, seed, args.windows)
+            overhead.setdefault(cams, []).append(track_s / solve_s)
             for name, m, t in (("tracker", ours, track_s), ("baseline (per-camera NN)", base, None)):
                 agg["tracker" if name == "tracker" else "baseline"].append(m)
                 lines.append(f"| {cams} | {seed} | {name} | {cells(m)} | {1e3 * solve_s:.0f} | "
@@ -157,6 +159,10 @@ def main(argv=None) -> int:
             shortfalls.append(f"{bag.name}: " + (f"not better on {', '.join(worse)}" if worse else "better on every metric"))
             print(f"{bag.name}: precision {ours['id_precision']:.3f} / {base['id_precision']:.3f}, fragmentation "
                   f"{ours['fragmentation']:.2f} / {base['fragmentation']:.2f}; {shortfalls[-1]}", flush=True)
+    cost = "; ".join(f"{c} cameras {100 * max(v):.0f}%" for c, v in sorted(overhead.items()))
+    latency = (f"Association time relative to solving the window (worst sequence; the goal: temporal association "
+               f"within 20% of per-window matching): {cost} — "
+               f"{'met' if max(max(v) for v in overhead.values()) <= 0.2 else 'NOT met'}.")
     worst_p = min(m["id_precision"] for m in agg["tracker"])
     worst_f = max(m["fragmentation"] for m in agg["tracker"])
     verdict = (f"Goals (every sequence): id precision >= 0.95: worst {worst_p:.3f}, "
@@ -170,7 +176,8 @@ def main(argv=None) -> int:
         "baseline on the same tracks. lifetime / true_span: mean windows a landmark lives / a true point is "
         "seen with an id. median_px / within_px / predicted: each window's sightings of landmarks already mapped "
         "from the earlier windows (true camera poses), reprojection error [px], share within 3 px, how many "
-        "('-': no poses, the Oxford sequences).\n\n" + "\n".join(lines) + "\n\n" + verdict + "\n\n## Sample bags (real images, labels)\n\n"
+        "('-': no poses, the Oxford sequences).\n\n" + "\n".join(lines) + "\n\n" + verdict + "\n\n" + latency
+        + "\n\n## Sample bags (real images, labels)\n\n"
         + "\n".join(bag_lines["sample"]) + "\n\n## Held-out real sequences (bags made by `gcn-match make-bags`; "
         "not seen when LandmarkConfig was chosen)\n\n" + "\n".join(bag_lines["held-out"])
         + "\n\nThe tracker against the baseline, per real sequence (id_precision, within_px, lifetime: higher is "
