@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .descriptors import cosine_distance
-from .edges.verify import MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, fit_pair, residuals
+from .edges.verify import MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, RANSAC_PX, fit_pair, residuals
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
 
@@ -52,6 +52,10 @@ MOTION_ESTIMATOR = cv2.USAC_FAST
 #: a frame pair's model is fitted on at most this many of its pairs (the cost of a fit grows
 #: with them; ~0.8 ms for F at 128)
 MOTION_FIT_PAIRS = 128
+#: RANSAC iterations of a frame pair's fit: enough for the inlier shares of continuations
+#: (~0.9: a few dozen), bounded where most of a frame pair's continuations are wrong (then no
+#: model is found and they stay unchecked)
+MOTION_MAX_ITERS = 200
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
 
@@ -139,37 +143,42 @@ class LandmarkTracker:
     def _candidates(self, camera_ids, view, keypoints, desc, units):
         """Every (unit, landmark, score) that passes the gate and its similarity (module docstring).
 
-        Sparse: image-gated pairs come from a k-d tree of the landmarks' last sightings, cross-camera
-        pairs from the similarity threshold, so the cost follows the candidates, not N x L.
+        Image-gated pairs come from a k-d tree of the landmarks' last sightings, cross-camera
+        pairs from the similarity threshold; of them each member keeps its two best landmarks
+        (all that the unit's best and second best need), a few passes over N x L in all.
 
         Returns:
-            unit, landmark (K,) int64 and score (K,) float32, one row per (member, landmark).
+            unit, landmark (K,) int64 and score (K,) float32, one row per (member, landmark), K <= 2N.
         """
         cfg = self.config
         sim = desc @ self._desc.T                                        # (N, L)
         column = np.array([self._cams[c] for c in camera_ids])[view]     # (N,) keypoint's camera column
         seen = ~np.isnan(self._xy[:, :, 0])                              # (L, cameras)
-        # near one of its last sightings in any camera; the tree only proposes (float64, a hair
-        # wider), the float32 test decides
+        # near one of its last sightings in any camera
         sight_lm, sight_cam = np.nonzero(seen)
-        sight_xy = self._xy[sight_lm, sight_cam].astype(np.float32)
-        kxy = keypoints.astype(np.float32)
-        near = cKDTree(kxy).sparse_distance_matrix(cKDTree(sight_xy), cfg.gate_px + 1e-3, output_type="ndarray")
+        near = cKDTree(keypoints).sparse_distance_matrix(cKDTree(self._xy[sight_lm, sight_cam]), cfg.gate_px,
+                                                         output_type="ndarray")
         i, lm = near["i"].astype(np.int64), sight_lm[near["j"]]
-        d = kxy[i] - sight_xy[near["j"]]
-        ok = d[:, 0] ** 2 + d[:, 1] ** 2 <= np.float32(cfg.gate_px ** 2)
-        i, lm = i[ok], lm[ok]
         # a camera that saw it: only near pairs, at the usual similarity
         gated = sim[i, lm]
         own = seen[lm, column[i]] & (gated >= np.float32(cfg.min_similarity))
         # a camera that did not: the point moved in from another camera, a higher similarity
-        cross_i, cross_lm = np.nonzero(sim >= np.float32(cfg.cross_similarity))
-        fresh = ~seen[cross_lm, column[cross_i]]
-        cross_i, cross_lm = cross_i[fresh], cross_lm[fresh]
+        score = np.where((sim >= np.float32(cfg.cross_similarity)) & ~seen[:, column].T, sim, np.float32(-np.inf))
+        score[i[own], lm[own]] = gated[own]
+        # a unit's best and second-best landmarks are among its members' two best: keep those
+        # (on SIFT-like descriptors many landmarks clear the cross-camera similarity)
+        rows = np.arange(score.shape[0])
+        first = score.argmax(1)
+        first_score = score[rows, first]
+        score[rows, first] = -np.inf
+        second = score.argmax(1)
+        second_score = score[rows, second]
+        member = np.concatenate([rows, rows])
+        lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
+        keep = np.isfinite(best)
         unit_of = np.empty(len(view), np.int64)
         unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), [m.size for m in units])
-        return (unit_of[np.concatenate([i[own], cross_i])], np.concatenate([lm[own], cross_lm]),
-                np.concatenate([gated[own], sim[cross_i, cross_lm]]))
+        return unit_of[member[keep]], lm[keep], best[keep]
 
     def _motion_checked(self, best_lm, units, camera_ids, view, keypoints):
         """The continuations that agree with the image motion since the last sightings.
@@ -208,9 +217,17 @@ class LandmarkTracker:
             sel = np.flatnonzero(key == k)
             if sel.size < MIN_SEEDS:
                 continue
+            moved = np.linalg.norm(xb[sel] - xa[sel], axis=1)
+            if np.median(moved) <= RANSAC_PX:
+                # the image held still (a standing robot): the identity is the model, and F
+                # would be degenerate (and slow to fit)
+                if (moved <= RANSAC_PX).sum() >= max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
+                    np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved <= MOTION_SLACK * RANSAC_PX, 1, -1))
+                    np.add.at(checked, unit_of_row[pair_row[sel]], 1)
+                continue
             # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
             fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
-            model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR)
+            model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
             if model is None:
                 continue
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a

@@ -111,11 +111,13 @@ class PairModel:
 
 def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0,
              K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
-             epipolar_px: float = EPIPOLAR_PX, estimator: int = EPIPOLAR_ESTIMATOR) -> Optional[PairModel]:
+             epipolar_px: float = EPIPOLAR_PX, estimator: int = EPIPOLAR_ESTIMATOR,
+             max_iters: int = 2000) -> Optional[PairModel]:
     """H and F (each None if it fails) from seed pairs xa[i] <-> xb[i] (pixels); None when
     neither fits. With both intrinsics K_a, K_b (3, 3) the epipolar model is an essential
     matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F;
-    ``estimator``: OpenCV's method for F (pixels only).
+    ``estimator``: OpenCV's method for F (pixels only); ``max_iters``: RANSAC iterations of H
+    and of F from pixels (fewer bound the cost and find only models of high inlier shares).
 
     Shapes: xa, xb (S, 2).
     """
@@ -127,7 +129,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     cv2.setRNGSeed(seed)
     H, nh = None, 0
     try:
-        H, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=2000, confidence=0.999)
+        H, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=max_iters, confidence=0.999)
         if H is None or mh is None or int(mh.sum()) < 8 or abs(np.linalg.det(H)) < 1e-8:
             H = None
         else:
@@ -136,7 +138,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
         H = None
     calibrated = K_a is not None and K_b is not None
     F, nf = (_fit_essential(a, b, epipolar_px, K_a, K_b, seed) if calibrated
-             else _fit_fundamental(a, b, epipolar_px, seed, estimator))
+             else _fit_fundamental(a, b, epipolar_px, seed, estimator, max_iters))
     if H is None and F is None:
         return None
     planar = H is not None and (F is None or nh >= PLANAR_RATIO * nf)
@@ -153,10 +155,10 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
 
 
 def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int,
-                     estimator: int = EPIPOLAR_ESTIMATOR) -> Tuple[Optional[np.ndarray], int]:
+                     estimator: int = EPIPOLAR_ESTIMATOR, max_iters: int = 2000) -> Tuple[Optional[np.ndarray], int]:
     cv2.setRNGSeed(seed)
     try:
-        F, mf = cv2.findFundamentalMat(a, b, estimator, px, 0.999, 2000)
+        F, mf = cv2.findFundamentalMat(a, b, estimator, px, 0.999, max_iters)
     except cv2.error:
         return None, 0
     if F is None or F.shape != (3, 3) or mf is None or int(mf.sum()) < MIN_SEEDS:
