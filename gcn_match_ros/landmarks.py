@@ -213,17 +213,20 @@ class LandmarkTracker:
         key = key.ravel()
         votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
         checked = np.zeros(len(units), np.int64)  # per unit: pairs under a trusted model
-        for k in np.unique(key):
-            sel = np.flatnonzero(key == k)
-            if sel.size < MIN_SEEDS:
-                continue
-            moved = np.linalg.norm(xb[sel] - xa[sel], axis=1)
-            if np.median(moved) <= RANSAC_PX:
-                # the image held still (a standing robot): the identity is the model, and F
-                # would be degenerate (and slow to fit)
-                if (moved <= RANSAC_PX).sum() >= max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
-                    np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved <= MOTION_SLACK * RANSAC_PX, 1, -1))
-                    np.add.at(checked, unit_of_row[pair_row[sel]], 1)
+        groups = [np.flatnonzero(key == k) for k in np.unique(key)]
+        groups = [g for g in groups if g.size >= MIN_SEEDS]
+        moved = np.linalg.norm(xb - xa, axis=1)
+        still = [bool(np.median(moved[g]) <= RANSAC_PX) for g in groups]
+        # frame pairs whose image held still first (a standing robot; on the sample bags an image
+        # seen again by the next camera): the identity is their model, exact and free, and F
+        # would be degenerate there. Then fitted models, only where a continuation is still
+        # unchecked: each fit costs about a millisecond.
+        for sel in [g for g, s in zip(groups, still) if s]:
+            if (moved[sel] <= RANSAC_PX).sum() >= max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
+                np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
+                np.add.at(checked, unit_of_row[pair_row[sel]], 1)
+        for sel in [g for g, s in zip(groups, still) if not s]:
+            if checked[unit_of_row[pair_row[sel]]].all():
                 continue
             # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
             fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
