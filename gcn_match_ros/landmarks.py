@@ -184,18 +184,18 @@ class LandmarkTracker:
         """The continuations that agree with the image motion since the last sightings.
 
         Each continuation pairs a member's pixel with its landmark's last sighting in a camera;
-        per pair of frames (last camera at the time of the last sighting, current camera) the
-        pairs of all continuations fit a two-view model
-        (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains clearly more pairs).
-        Where that model has the support of a trusted one (``edges.verify``), a continuation
-        most of whose checked pairs it rejects is dropped (one wrong member of a track does not undo the whole track's continuation): what descriptors
-        and the image gate cannot tell apart on repetitive structure, the motion of the other
-        points can. A lone keypoint's continuation that no trusted model can check is dropped
-        too: typically a point re-found after windows unseen, with too few companions to fit that
-        frame pair's motion, on a single sighting (on the sample bags such re-findings were
-        mostly wrong). A track's stays: two or more views of one point re-found together are
-        right on the generated rigs, and refusing them too fragmented landmarks there (1.1 ->
-        1.25 landmarks per point).
+        the pairs of all continuations between the same two frames (last camera at the time of
+        the last sighting, current camera) share one motion. A frame pair whose image held still
+        is checked against the identity; the others, where a continuation is still unchecked,
+        fit a two-view model (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains
+        clearly more pairs) and count only with the support of a trusted one (``edges.verify``).
+        A continuation most of whose checked pairs disagree is dropped (one wrong member of a
+        track does not undo the track's continuation): what descriptors and the image gate
+        cannot tell apart on repetitive structure, the motion of the other points can. A lone
+        keypoint's continuation that nothing checks is dropped too: typically a point re-found
+        after windows unseen, too few to fit that frame pair's motion (on the sample bags such
+        re-findings were mostly wrong). A track's stays: refusing those too fragmented the
+        generated rigs' landmarks (1.1 -> 1.25 per point).
         """
         cont = np.flatnonzero(best_lm >= 0)
         if cont.size == 0:
