@@ -56,6 +56,9 @@ MOTION_FIT_PAIRS = 128
 #: (~0.9: a few dozen), bounded where most of a frame pair's continuations are wrong (then no
 #: model is found and they stay unchecked)
 MOTION_MAX_ITERS = 200
+#: last window's motion model of a camera pair is used again while it explains this share of
+#: the pairs (else re-fitted)
+MOTION_REUSE_SHARE = 0.8
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
 
@@ -92,6 +95,8 @@ class LandmarkTracker:
         self._seen_ns = np.zeros(0, np.int64)
         self._cams: Dict[str, int] = {}  # camera id -> column of _xy
         self._xy = np.zeros((0, 0, 2))   # (L, cameras, 2): where each camera saw it last (NaN: not)
+        self._motion_models = {}          # (last camera, camera) column -> last window's motion model
+        self._previous_ns = None          # the last window's time
         self.born = 0
         self.retired = 0
 
@@ -138,6 +143,7 @@ class LandmarkTracker:
             ids[np.concatenate([units[u] for u in founders])] = np.repeat(self._ids[first:], sizes[founders])
         born_of = dict(zip(self._ids.tolist(), self._born_ns.tolist()))
         ages = np.array([stamp_ns - born_of[i] if i >= 0 else -1 for i in ids.tolist()], np.int64)
+        self._previous_ns = stamp_ns
         return ids, ages
 
     def _candidates(self, camera_ids, view, keypoints, desc, units):
@@ -189,6 +195,9 @@ class LandmarkTracker:
         is checked against the identity; the others, where a continuation is still unchecked,
         fit a two-view model (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains
         clearly more pairs) and count only with the support of a trusted one (``edges.verify``).
+        Consecutive frames of a camera pair re-check last window's model first and re-fit only
+        when it explains less than ``MOTION_REUSE_SHARE`` of the pairs, as the rig memory does
+        for camera pairs: a rig moving steadily is not re-fitted every window.
         A continuation most of whose checked pairs disagree is dropped (one wrong member of a
         track does not undo the track's continuation): what descriptors and the image gate
         cannot tell apart on repetitive structure, the motion of the other points can. A lone
@@ -228,19 +237,28 @@ class LandmarkTracker:
         for sel in [g for g, s in zip(groups, still) if not s]:
             if checked[unit_of_row[pair_row[sel]]].all():
                 continue
-            # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
-            fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
-            model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
-            if model is None:
+            # consecutive frames of a camera pair: last window's model first (a rig moving
+            # steadily moves alike window after window), re-fitted when it no longer explains
+            # nearly all pairs
+            cams = (int(pair_cam[sel[0]]), int(column[pair_row[sel[0]]]))
+            consecutive = seen_ns[sel[0]] == self._previous_ns
+            model = self._motion_models.get(cams) if consecutive else None
+            support = _motion_support(model, xa[sel], xb[sel]) if model is not None else None
+            if support is None or max(support[2:]) < MOTION_REUSE_SHARE * sel.size:
+                # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
+                fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
+                model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
+                if model is None:
+                    continue
+                support = _motion_support(model, xa[sel], xb[sel])
+            rh, rf, inliers_h, inliers_f = support
+            if max(inliers_h, inliers_f) < max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
                 continue
+            if consecutive:
+                self._motion_models[cams] = model
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
             # small rig motion makes H almost as good as F by the estimators' counts, yet near
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
-            rh, rf = residuals(model, xa[sel], xb[sel])
-            inliers_h, inliers_f = int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
-            support = max(inliers_h, inliers_f)
-            if support < MIN_INLIERS or support < MIN_INLIER_RATIO * sel.size:
-                continue
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
@@ -346,6 +364,13 @@ def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units:
     second = np.where(np.isfinite(second), second, -1.0)
     ok = np.isfinite(first) & ((cosine_distance(first) < ratio * cosine_distance(second)) | (second < 0))
     return np.where(ok, best_lm, -1), np.where(ok, first, 0.0)
+
+
+def _motion_support(model, xa: np.ndarray, xb: np.ndarray):
+    """(H residuals, F residuals, pairs within H's threshold, pairs within F's) of a motion model
+    on pairs xa <-> xb (M, 2)."""
+    rh, rf = residuals(model, xa, xb)
+    return rh, rf, int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
 
 
 class PerCameraNNLinker:

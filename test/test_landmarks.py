@@ -196,3 +196,34 @@ def test_a_continuation_against_the_motion_of_the_others_is_refused():
         ids2, _ = tracker.update(CAMS, *second, PERIOD)
         assert (ids2[0] == ids1[0]) == same
         assert np.array_equal(ids2[1:P], ids1[1:P])  # the others continue either way
+
+
+def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(monkeypatch):
+    """Like the rig memory: the motion of consecutive frames of a camera pair is re-checked on
+    the next window and re-fitted only when it no longer explains the continuations."""
+    import gcn_match_ros.landmarks as landmarks_module
+
+    fits = []
+    real_fit = landmarks_module.fit_pair
+    monkeypatch.setattr(landmarks_module, "fit_pair", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    rng = np.random.default_rng(8)
+    P = 60
+    base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
+    tracker = LandmarkTracker()
+    fitted, previous = [], None
+    offset = np.zeros(2)
+    for t, step in enumerate([(0, 0), (6, 0), (6, 0), (6, 0), (0, 9)]):
+        offset = offset + step
+        n = P
+        kp = np.concatenate([xy + offset, xy + offset + [25.0, 0.0]])  # the other camera: 25 px aside
+        desc = np.concatenate([base, base]) + 0.02 * rng.normal(size=(2 * P, 32))
+        ids, _ = tracker.update(CAMS, np.array([0, n, 2 * n]), kp, desc.astype(np.float32),
+                                np.r_[np.arange(n), np.arange(n)], t * PERIOD)
+        fitted.append(len(fits))
+        if previous is not None:
+            assert np.array_equal(ids, previous)  # every point keeps its id throughout
+        previous = ids
+    per_window = np.diff([0] + fitted)
+    assert per_window[0] == 0 and per_window[1] > 0      # nothing to check, then the first motion
+    assert per_window[2] == 0 and per_window[3] == 0     # the same motion: re-checked, not re-fitted
+    assert per_window[4] > 0                             # a new motion: re-fitted
