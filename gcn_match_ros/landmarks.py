@@ -40,7 +40,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .descriptors import cosine_distance
-from .edges.verify import MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, RANSAC_PX, fit_pair, residuals
+from .edges.verify import MIN_SEEDS, RANSAC_PX, fit_pair, residuals, trusted_support
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
 
@@ -115,15 +115,19 @@ class LandmarkTracker:
         if self._desc.shape[1] != desc.shape[1]:
             self._reset(desc.shape[1])
         self._retire(stamp_ns)
+        self._camera_columns(camera_ids)
+        column = np.array([self._cams[c] for c in camera_ids], np.int64)[view]   # (N,) camera column
         units = _units(track)
+        sizes = np.array([m.size for m in units])
         best_lm = np.full(len(units), -1)
         best_score = np.zeros(len(units))
         if self._ids.size and n:
-            self._camera_columns(camera_ids)
-            unit, lm, score = self._candidates(camera_ids, view, keypoints, desc, units)
-            best_lm, best_score = _best_per_unit(unit, lm, score, len(units), cfg.ratio)
+            unit_of = np.empty(n, np.int64)
+            unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), sizes)
+            member, lm, score = self._candidates(column, keypoints, desc)
+            best_lm, best_score = _best_per_unit(unit_of[member], lm, score, len(units), cfg.ratio)
             if cfg.verify_motion:
-                best_lm = self._motion_checked(best_lm, units, camera_ids, view, keypoints)
+                best_lm = self._motion_checked(best_lm, units, sizes, column, keypoints)
         # units take landmarks one-to-one, best score first; a track left without one is a new point
         order = np.argsort(-best_score, kind="stable")
         ranked_lm = best_lm[order]
@@ -131,34 +135,33 @@ class LandmarkTracker:
         winners = np.zeros(len(units), bool)
         winners[claims[np.unique(ranked_lm[claims], return_index=True)[1]]] = True
         continued = order[winners]
-        sizes = np.array([m.size for m in units])
         founders = order[~winners & (sizes[order] >= 2)]
         ids = np.full(n, -1, np.int64)
         if continued.size:
-            self._sighted(continued, best_lm[continued], units, camera_ids, view, keypoints, desc, stamp_ns)
+            self._sighted(continued, best_lm[continued], units, column, keypoints, desc, stamp_ns)
             ids[np.concatenate([units[u] for u in continued])] = np.repeat(self._ids[best_lm[continued]],
                                                                             sizes[continued])
         if founders.size:
-            first = self._found([units[u] for u in founders], camera_ids, view, keypoints, desc, stamp_ns)
+            first = self._found([units[u] for u in founders], column, keypoints, desc, stamp_ns)
             ids[np.concatenate([units[u] for u in founders])] = np.repeat(self._ids[first:], sizes[founders])
         born_of = dict(zip(self._ids.tolist(), self._born_ns.tolist()))
         ages = np.array([stamp_ns - born_of[i] if i >= 0 else -1 for i in ids.tolist()], np.int64)
         self._previous_ns = stamp_ns
         return ids, ages
 
-    def _candidates(self, camera_ids, view, keypoints, desc, units):
-        """Every (unit, landmark, score) that passes the gate and its similarity (module docstring).
+    def _candidates(self, column, keypoints, desc):
+        """Each keypoint's two best landmarks that pass the gate and their similarity (module
+        docstring); ``column`` (N,) is each keypoint's camera column.
 
         Image-gated pairs come from a k-d tree of the landmarks' last sightings, cross-camera
         pairs from the similarity threshold; of them each member keeps its two best landmarks
         (all that the unit's best and second best need), a few passes over N x L in all.
 
         Returns:
-            unit, landmark (K,) int64 and score (K,) float32, one row per (member, landmark), K <= 2N.
+            keypoint, landmark (K,) int64 and score (K,) float32, K <= 2N.
         """
         cfg = self.config
         sim = desc @ self._desc.T                                        # (N, L)
-        column = np.array([self._cams[c] for c in camera_ids])[view]     # (N,) keypoint's camera column
         seen = ~np.isnan(self._xy[:, :, 0])                              # (L, cameras)
         # near one of its last sightings in any camera
         sight_lm, sight_cam = np.nonzero(seen)
@@ -182,11 +185,9 @@ class LandmarkTracker:
         member = np.concatenate([rows, rows])
         lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
         keep = np.isfinite(best)
-        unit_of = np.empty(len(view), np.int64)
-        unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), [m.size for m in units])
-        return unit_of[member[keep]], lm[keep], best[keep]
+        return member[keep], lm[keep], best[keep]
 
-    def _motion_checked(self, best_lm, units, camera_ids, view, keypoints):
+    def _motion_checked(self, best_lm, units, sizes, column, keypoints):
         """The continuations that agree with the image motion since the last sightings.
 
         Each continuation pairs a member's pixel with its landmark's last sighting in a camera;
@@ -209,16 +210,15 @@ class LandmarkTracker:
         cont = np.flatnonzero(best_lm >= 0)
         if cont.size == 0:
             return best_lm
-        sizes = np.array([units[u].size for u in cont])
         rows = np.concatenate([units[u] for u in cont])
-        unit_of_row = np.repeat(cont, sizes)
-        column = np.array([self._cams[c] for c in camera_ids])[view[rows]]
+        unit_of_row = np.repeat(cont, sizes[cont])
+        row_column = column[rows]
         last = self._xy[best_lm[unit_of_row]]                              # (R, cameras, 2)
         pair_row, pair_cam = np.nonzero(~np.isnan(last[:, :, 0]))          # a pair per earlier sighting
         xa, xb = last[pair_row, pair_cam], keypoints[rows[pair_row]].astype(np.float64)
         # one motion per pair of frames: (last camera, its frame's time, current camera)
         seen_ns = self._seen_ns[best_lm[unit_of_row]][pair_row]
-        _, key = np.unique(np.stack([pair_cam, column[pair_row], seen_ns], 1), axis=0, return_inverse=True)
+        _, key = np.unique(np.stack([pair_cam, row_column[pair_row], seen_ns], 1), axis=0, return_inverse=True)
         key = key.ravel()
         votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
         checked = np.zeros(len(units), np.int64)  # per unit: pairs under a trusted model
@@ -231,7 +231,7 @@ class LandmarkTracker:
         # would be degenerate there. Then fitted models, only where a continuation is still
         # unchecked: each fit costs about a millisecond.
         for sel in [g for g, s in zip(groups, still) if s]:
-            if (moved[sel] <= RANSAC_PX).sum() >= max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
+            if trusted_support(int((moved[sel] <= RANSAC_PX).sum()), sel.size):
                 np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
                 np.add.at(checked, unit_of_row[pair_row[sel]], 1)
         for sel in [g for g, s in zip(groups, still) if not s]:
@@ -240,7 +240,7 @@ class LandmarkTracker:
             # consecutive frames of a camera pair: last window's model first (a rig moving
             # steadily moves alike window after window), re-fitted when it no longer explains
             # nearly all pairs
-            cams = (int(pair_cam[sel[0]]), int(column[pair_row[sel[0]]]))
+            cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
             consecutive = seen_ns[sel[0]] == self._previous_ns
             model = self._motion_models.get(cams) if consecutive else None
             support = _motion_support(model, xa[sel], xb[sel]) if model is not None else None
@@ -252,7 +252,7 @@ class LandmarkTracker:
                     continue
                 support = _motion_support(model, xa[sel], xb[sel])
             rh, rf, inliers_h, inliers_f = support
-            if max(inliers_h, inliers_f) < max(MIN_INLIERS, MIN_INLIER_RATIO * sel.size):
+            if not trusted_support(max(inliers_h, inliers_f), sel.size):
                 continue
             if consecutive:
                 self._motion_models[cams] = model
@@ -263,8 +263,7 @@ class LandmarkTracker:
                 (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
             np.add.at(checked, unit_of_row[pair_row[sel]], 1)
-        lone = np.array([m.size == 1 for m in units])
-        return np.where((votes < 0) | ((checked == 0) & lone), -1, best_lm)
+        return np.where((votes < 0) | ((checked == 0) & (sizes == 1)), -1, best_lm)
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:
@@ -290,7 +289,7 @@ class LandmarkTracker:
         self._born_ns, self._seen_ns = self._born_ns[keep], self._seen_ns[keep]
         self._xy = self._xy[keep]
 
-    def _sighted(self, us, js, units, camera_ids, view, keypoints, desc, stamp_ns) -> None:
+    def _sighted(self, us, js, units, column, keypoints, desc, stamp_ns) -> None:
         """Update the landmarks ``js`` with their units ``us`` ((K,) each), at once."""
         w = self.config.summary_weight
         rows = np.concatenate([units[u] for u in us])
@@ -300,20 +299,17 @@ class LandmarkTracker:
         self._desc[js] = mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
         self._seen_ns[js] = stamp_ns
         self._xy[js] = np.nan
-        column = np.array([self._cams[c] for c in camera_ids])
-        self._xy[np.repeat(js, sizes), column[view[rows]]] = keypoints[rows]
+        self._xy[np.repeat(js, sizes), column[rows]] = keypoints[rows]
 
-    def _found(self, tracks, camera_ids, view, keypoints, desc, stamp_ns) -> int:
+    def _found(self, tracks, column, keypoints, desc, stamp_ns) -> int:
         """New landmarks for ``tracks`` (member arrays), ids in that order; returns the first's index."""
-        self._camera_columns(camera_ids)
         k = len(tracks)
         summary = np.empty((k, desc.shape[1]), np.float32)
         xy = np.full((k, len(self._cams), 2), np.nan)
         for t, members in enumerate(tracks):
             mean = desc[members].mean(0)
             summary[t] = mean / max(float(np.linalg.norm(mean)), 1e-12)
-            for m in members.tolist():
-                xy[t, self._cams[camera_ids[view[m]]]] = keypoints[m]
+            xy[t, column[members]] = keypoints[members]   # a track has one keypoint per camera
         first = self._ids.size
         self._ids = np.concatenate([self._ids, self._next_id + np.arange(k)])
         self._desc = np.concatenate([self._desc, summary])

@@ -144,9 +144,11 @@ def test_sparse_association_follows_the_dense_rule():
             desc = p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)
             view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
             tracker._camera_columns(p.camera_ids)
-            best, _ = _best_per_unit(*tracker._candidates(p.camera_ids, view, p.keypoints,
-                                                          desc.astype(np.float32), units),
-                                     len(units), tracker.config.ratio)
+            column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
+            member, lm, score = tracker._candidates(column, p.keypoints, desc.astype(np.float32))
+            unit_of = np.empty(p.n_keypoints, np.int64)
+            unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), [m.size for m in units])
+            best, _ = _best_per_unit(unit_of[member], lm, score, len(units), tracker.config.ratio)
             dense = _dense_choice(tracker, p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, units)
             agree = best == dense
             # float64 here vs float32 there may flip a pair sitting exactly on a threshold

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..geometry import sampson_distance, transfer, unproject
 
-__all__ = ["PairModel", "fit_pair", "residuals", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "PLANAR_RATIO",
+__all__ = ["PairModel", "fit_pair", "residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "PLANAR_RATIO",
            "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX"]
 
 MIN_SEEDS = 12
@@ -44,6 +44,13 @@ EPIPOLAR_ESTIMATOR = cv2.USAC_ACCURATE
 #: An essential matrix whose estimator inliers are less than this share in front of both
 #: cameras is degenerate (seen on generated orbit scenes): USAC_MAGSAC is tried instead.
 CHEIRAL_SHARE = 0.8
+
+
+def trusted_support(inliers: int, seeds: int, min_inliers: int = MIN_INLIERS,
+                    min_inlier_ratio: float = MIN_INLIER_RATIO) -> bool:
+    """Whether a model explaining ``inliers`` of ``seeds`` pairs may be believed: at least
+    ``min_inliers`` of them, making at least ``min_inlier_ratio`` of the seeds."""
+    return inliers >= min_inliers and inliers >= min_inlier_ratio * seeds
 
 
 @dataclasses.dataclass
@@ -79,7 +86,7 @@ class PairModel:
 
     def trusted(self, min_inliers: int = MIN_INLIERS, min_inlier_ratio: float = MIN_INLIER_RATIO) -> bool:
         """Whether the selected model has the support to be believed (module docstring)."""
-        return self.inliers >= min_inliers and self.inliers >= min_inlier_ratio * self.seeds
+        return trusted_support(self.inliers, self.seeds, min_inliers, min_inlier_ratio)
 
     def selected(self) -> "PairModel":
         """This model with only the selected H or F kept."""
