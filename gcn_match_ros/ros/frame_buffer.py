@@ -4,7 +4,8 @@ Consumers of ``MatchWindow`` (the visualiser, the mapping node) need each view's
 coordinates, which travel in the ``Keypoints`` messages the window names by camera and exact
 stamp. :class:`StampBuffer` keeps the last few messages of every camera; :func:`window_frames`
 finds a window's frames there and cuts them to the keypoints the matcher kept
-(:func:`gcn_match_ros.windowing.trim_frame`, the one rule).
+(:func:`gcn_match_ros.windowing.trim_frame`, the one rule); :func:`decoded_window` unpacks a
+window, counting and logging a malformed one.
 """
 from __future__ import annotations
 
@@ -14,9 +15,9 @@ from typing import Deque, Dict, List, Optional, Sequence, Tuple
 from ..bags.codec import frame_from_keypoints_msg
 from ..stamps import stamp_to_ns
 from ..windowing import Frame, FrameError, trim_frame
-from .conversions import WindowArrays
+from .conversions import MatchWindowError, WindowArrays, match_window_to_arrays
 
-__all__ = ["StampBuffer", "window_frames"]
+__all__ = ["StampBuffer", "decoded_window", "window_frames"]
 
 
 class StampBuffer:
@@ -50,3 +51,14 @@ def window_frames(window: WindowArrays, keypoints: StampBuffer) -> Tuple[Optiona
             return None, f"{cam}: the window has {n_view} keypoints, its message {frame.count}"
         frames.append(trim_frame(frame, n_view))
     return frames, ""
+
+
+def decoded_window(msg, counts: collections.Counter, logger, throttle_s: float) -> Optional[WindowArrays]:
+    """The arrays of a ``MatchWindow``, or None for a malformed one, counted in
+    ``counts["invalid windows"]`` and logged as a warning at most every ``throttle_s``."""
+    try:
+        return match_window_to_arrays(msg)
+    except MatchWindowError as exc:
+        counts["invalid windows"] += 1
+        logger.warning(f"skipped an invalid window: {exc}", throttle_duration_sec=throttle_s)
+        return None

@@ -32,8 +32,7 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from ..geometry import pose_to_rt
 from ..landmark_map import LandmarkMap
-from .conversions import MatchWindowError, match_window_to_arrays
-from .frame_buffer import StampBuffer, window_frames
+from .frame_buffer import StampBuffer, decoded_window, window_frames
 from .spin import run_node
 
 __all__ = ["MappingNode", "landmark_cloud", "main"]
@@ -82,11 +81,8 @@ class MappingNode(Node):
         self.get_logger().info(f"mapping landmarks of {cameras} -> {self._pub.topic_name}")
 
     def _on_window(self, msg: MatchWindow) -> None:
-        try:
-            w = match_window_to_arrays(msg)
-        except MatchWindowError as exc:
-            self.counts["invalid windows"] += 1
-            self.get_logger().warning(f"skipped an invalid window: {exc}", throttle_duration_sec=_THROTTLE_S)
+        w = decoded_window(msg, self.counts, self.get_logger(), _THROTTLE_S)
+        if w is None:
             return
         if w.landmark_ids is None:
             self.counts["windows without landmarks"] += 1
@@ -106,10 +102,10 @@ class MappingNode(Node):
         Rt = [pose_to_rt([p.pose.position.x, p.pose.position.y, p.pose.position.z],
                          [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w])
               for p in poses]
-        sightings = (w.landmark_ids, np.concatenate([f.keypoints for f in frames]), w.view_index,
-                     np.stack([f.K for f in frames]), np.stack([r for r, _ in Rt]), np.stack([t for _, t in Rt]))
-        self.held_out_px.extend(self.map.held_out_errors(*sightings).tolist())
-        self.map.add_window(*sightings, w.stamp_ns)
+        window = (w.landmark_ids, np.concatenate([f.keypoints for f in frames]), w.view_index,
+                  np.stack([f.K for f in frames]), np.stack([r for r, _ in Rt]), np.stack([t for _, t in Rt]))
+        self.held_out_px.extend(self.map.held_out_errors(*window).tolist())  # before the map has seen it
+        self.map.add_window(*window, w.stamp_ns)
         ids, points, sightings = self.map.arrays()
         header = msg.header
         header.frame_id = poses[0].header.frame_id

@@ -29,8 +29,7 @@ from sensor_msgs.msg import CompressedImage, Image
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from ..track_image import draw_tracks
-from .conversions import MatchWindowError, match_window_to_arrays
-from .frame_buffer import StampBuffer, window_frames
+from .frame_buffer import StampBuffer, decoded_window, window_frames
 from .spin import run_node
 
 __all__ = ["VisualizerNode", "main", "image_to_bgr"]
@@ -103,11 +102,8 @@ class VisualizerNode(Node):
         msg, self._window = self._window, None
         if msg is None:
             return
-        try:
-            w = match_window_to_arrays(msg)
-        except MatchWindowError as exc:
-            self.counts["invalid windows"] += 1
-            self.get_logger().warning(f"skipped an invalid window: {exc}", throttle_duration_sec=_THROTTLE_S)
+        w = decoded_window(msg, self.counts, self.get_logger(), _THROTTLE_S)
+        if w is None:
             return
         frames, why = window_frames(w, self._keypoints)
         if frames is None:
