@@ -139,6 +139,22 @@ def test_match_window_shapes_tracks_and_pairs():
     broken.track = array.array("i", [0] * (n - 1))
     with pytest.raises(MatchWindowError):
         match_window_to_arrays(broken)
+    # ... and a consumer node's decode counts and logs it instead of raising
+    from collections import Counter
+    from gcn_match_ros.ros.frame_buffer import decoded_window
+
+    class Logger:
+        def __init__(self):
+            self.warnings = []
+
+        def warning(self, text, throttle_duration_sec):
+            self.warnings.append((text, throttle_duration_sec))
+
+    counts, logger = Counter(), Logger()
+    assert decoded_window(broken, counts, logger, 2.0) is None
+    assert counts["invalid windows"] == 1 and logger.warnings[0][0].startswith("skipped an invalid window")
+    assert logger.warnings[0][1] == 2.0
+    assert decoded_window(msg, counts, logger, 2.0).stamp_ns == frames[2].stamp_ns and counts["invalid windows"] == 1
 
 
 def test_landmark_fields_round_trip_and_are_validated():
