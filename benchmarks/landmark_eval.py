@@ -35,7 +35,7 @@ from gcn_match_ros import solvers
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
 from gcn_match_ros.experiments import results_header
 from gcn_match_ros.landmark_map import held_out_reprojection
-from gcn_match_ros.landmark_metrics import landmark_scores
+from gcn_match_ros.landmark_metrics import landmark_scores, true_points
 from gcn_match_ros.landmarks import LandmarkTracker, PerCameraNNLinker
 from gcn_match_ros.stream import StreamState
 
@@ -90,8 +90,7 @@ def run_bag(solver_spec: str, path: Path):
 
     replay = read_bag(path, progress=False).replay_windows()
     problems, stamps = replay.problems, replay.stamps_ns
-    truth = [np.where(labels >= 0, labels, -1) if labels is not None else np.full(p.n_keypoints, -1)
-             for labels, p in zip(replay.labels, problems)]
+    truth = [true_points(labels, p.n_keypoints) for labels, p in zip(replay.labels, problems)]
     ours, base, _, _ = assign_ids(solver_spec, problems, stamps)
     return scores(problems, stamps, ours, truth), scores(problems, stamps, base, truth), len(problems)
 

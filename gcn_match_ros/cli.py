@@ -37,7 +37,7 @@ from .bags.typesys import KEYPOINTS_TYPE
 from .data import synthetic
 from .data.convert import convert
 from .data.scenes import DATA_ROOT, DatasetError
-from .landmark_metrics import landmark_scores
+from .landmark_metrics import landmark_scores, true_points
 from .graph import CorrespondenceGraph, GraphConfig
 from .learn import ddp
 from .learn.checkpoint import load_checkpoint
@@ -339,7 +339,7 @@ def _cmd_stream(args) -> int:
           f"{tracker.born}, live {len(tracker)}, retired {tracker.retired}"
           + (f"; written to {args.out}" if args.out else ""))
     if all(labels is not None for labels in replay.labels):
-        truth = [np.where(labels >= 0, labels, -1) for labels in replay.labels]
+        truth = [true_points(labels, p.n_keypoints) for labels, p in zip(replay.labels, replay.problems)]
         scores = landmark_scores(ids_per_window, truth)
         print("against the bag's labels: " + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
     return 0

@@ -19,7 +19,18 @@ from typing import Dict, Sequence
 
 import numpy as np
 
-__all__ = ["landmark_scores"]
+__all__ = ["landmark_scores", "true_points"]
+
+
+def true_points(labels, n: int) -> np.ndarray:
+    """The ``truth`` of one window from a bag's scene-global labels (``bags.contents``): the
+    point id of each keypoint, -1 for none and for unlabelled (-2) ones, all -1 without labels.
+
+    Shapes: labels (N,) or None -> (N,) int64 (``n`` = N).
+    """
+    if labels is None:
+        return np.full(n, -1, np.int64)
+    return np.where(np.asarray(labels) >= 0, labels, -1).astype(np.int64)
 
 
 def _majority(keys: np.ndarray, values: np.ndarray) -> Dict[int, int]:

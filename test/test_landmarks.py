@@ -229,3 +229,10 @@ def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(monkeypatch):
     assert per_window[0] == 0 and per_window[1] > 0      # nothing to check, then the first motion
     assert per_window[2] == 0 and per_window[3] == 0     # the same motion: re-checked, not re-fitted
     assert per_window[4] > 0                             # a new motion: re-fitted
+
+
+def test_true_points_from_bag_labels():
+    from gcn_match_ros.landmark_metrics import true_points
+
+    assert true_points(np.array([4, -1, -2, 0]), 4).tolist() == [4, -1, -1, 0]
+    assert true_points(None, 3).tolist() == [-1, -1, -1]

@@ -193,9 +193,9 @@ class BagContents:
         """
         config = config or WindowConfig(cameras=tuple(self.cameras))
         frames, labels = [], []
-        for window, window_labels_ in self.windows(config, flush=False):  # the node never flushes
+        for window, labelled in self.windows(config, flush=False):  # the node never flushes
             frames.append(window)
-            labels.append(window_labels_)
+            labels.append(labelled)
         return ReplayWindows(frames=frames, problems=[window_problem(w) for w in frames], labels=labels,
                              stamps_ns=[max(f.stamp_ns for f in w) for w in frames])
 
