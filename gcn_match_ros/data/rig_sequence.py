@@ -101,10 +101,11 @@ def rig_windows(config: RigSequenceConfig = RigSequenceConfig(), rng=None, start
     # point has depth under max_depth and lies inside the field of view, so within this distance
     reach = cfg.max_depth_m * math.sqrt(1 + (w / 2 / cfg.focal_length) ** 2 + (h / 2 / cfg.focal_length) ** 2) + 1.0
     by_x = np.argsort(X[:, 0], kind="stable")
+    x_sorted = X[by_x, 0]
     for t in range(cfg.n_windows):
         heading = math.radians(cfg.yaw_rate_deg) * t
         centre = np.array([cfg.step_m * t, 0.0, 1.5])
-        lo, hi = np.searchsorted(X[by_x, 0], [centre[0] - reach, centre[0] + reach])
+        lo, hi = np.searchsorted(x_sorted, [centre[0] - reach, centre[0] + reach])
         near = np.sort(by_x[lo:hi])
         kps, descs, pids, offsets, Rs, ts = [], [], [], [0], [], []
         for c in range(cfg.n_cameras):
