@@ -61,14 +61,17 @@ def main(argv=None):
     ap.add_argument("--threshold", type=float, default=0.3,
                     help="rounding threshold stored with the model (models/README.md: 0.2 for default.pt, "
                          "chosen by real validation F1; 0.3 for orb.pt, chosen on generated validation scenes)")
+    ap.add_argument("--chained-models", choices=("true", "false"), default="false",
+                    help="whether gcn fits chained models for view pairs without a trusted one with this model "
+                         "(stored with it; models/README.md: true for orb.pt)")
     ap.add_argument("--restamp", action="store_true",
-                    help="only store --threshold in the shipped model of --detector (weights unchanged; the "
-                         "threshold is chosen after training by benchmarks/threshold_sweep.py)")
+                    help="only store --threshold and --chained-models in the shipped model of --detector (weights "
+                         "unchanged; both are chosen after training: models/README.md)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.restamp:
         target = SHIPPED_MODELS[DETECTOR_KINDS[args.detector]]
-        _install(target, target, args.threshold)
+        _install(target, target, args.threshold, args.chained_models == "true")
         return
     train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
@@ -92,16 +95,16 @@ def main(argv=None):
     train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
-        _install(best, SHIPPED_MODELS[kind], args.threshold)
+        _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true")
 
 
-def _install(checkpoint: Path, target: Path, threshold: float) -> None:
+def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool) -> None:
     """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``
-    to ``target`` (atomically: save_checkpoint)."""
+    and ``chained_models`` to ``target`` (atomically: save_checkpoint)."""
     model, meta = load_checkpoint(checkpoint)
-    config = dict(meta["config"], solver={"threshold": threshold})
+    config = dict(meta["config"], solver={"threshold": threshold, "chained_models": chained_models})
     save_checkpoint(target, model, config, {"step": int(meta["extra"].get("step", 0))})
-    print("installed", target, "threshold", threshold)
+    print("installed", target, "threshold", threshold, "chained_models", chained_models)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,8 @@
 tracks that must agree as a whole."""
 import numpy as np
 
-from gcn_match_ros.edges.consistency import CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry
+from gcn_match_ros.edges.consistency import (CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry,
+                                             verified_tracks)
 from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel
 from gcn_match_ros.problem import Problem
 from gcn_match_ros.rounding import greedy_tracks
@@ -140,3 +141,39 @@ def test_batched_agreement_equals_each_models_own_check():
             want = False if model is None else model.agrees(kp[[r]], kp[[c]], slack)[0]
             assert g == want
         assert got.any() and not got.all()
+
+
+def _chains(p, n, scramble_last=False, seed=0):
+    """Pairs k_0-k_1 and k_1-k_2 of the first n points (view 1 to view 2 shuffled if asked)."""
+    o = p.view_offsets
+    k = np.arange(n)
+    last = np.random.default_rng(seed).permutation(n) if scramble_last else k
+    rows = np.r_[o[0] + k, o[1] + k]
+    cols = np.r_[o[1] + k, o[2] + last]
+    return rows, cols, np.full(rows.shape, 0.8)
+
+
+def test_chained_model_verifies_a_view_pair_its_seeds_could_not():
+    """Views 0 and 2 have no model of their own; 20 tracks through view 1 give their pairs as
+    seeds, the fitted model (the shift 20, 10) is trusted, and the 3-view tracks are kept."""
+    p = _window()
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (0, 2): None, (1, 2): _shift(10, 5)})
+    rows, cols, scores = _chains(p, 20)
+    chained = geometry.with_chained_models(rows, cols, scores, 0.5)
+    assert chained is not geometry and chained.verified[0, 2]
+    o = p.view_offsets
+    assert chained.agree(o[0] + np.arange(20), o[2] + np.arange(20)).all()
+    assert not chained.agree(o[0] + np.arange(20), o[2] + (np.arange(20) + 1) % 20).any()
+    _, without = verified_tracks(geometry, rows, cols, scores, 0.5)
+    _, with_chained = verified_tracks(geometry, rows, cols, scores, 0.5, chained_models=True)
+    assert (np.bincount(without[without >= 0]) == 2).all()  # each chain stops at its first link
+    assert (np.bincount(with_chained[with_chained >= 0]) == 3).sum() == 20
+
+
+def test_no_chained_model_from_wrong_chains_or_too_few():
+    """Chains whose second link is a random pairing fit no trusted model (views that share no
+    scene); fewer chains than a trusted model needs inliers fit none either."""
+    p = _window(sizes=(40, 40, 40))
+    geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (0, 2): None, (1, 2): _shift(10, 5)})
+    assert geometry.with_chained_models(*_chains(p, 40, scramble_last=True), 0.5) is geometry
+    assert geometry.with_chained_models(*_chains(p, 10), 0.5) is geometry

@@ -108,6 +108,18 @@ def test_threshold_follows_the_model_unless_set():
     assert fixed.threshold == 0.45
 
 
+def test_chained_models_follow_the_model_unless_set():
+    """The shipped ORB model verifies with chained models, the SIFT model without (models/README.md)."""
+    solver = solvers.create("gcn")
+    assert solver.chained_models is False
+    solver._use(str(SHIPPED_MODELS[(256, True)]))
+    assert solver.chained_models is True
+    off = solvers.create("gcn:chained_models=false")
+    off._use(str(SHIPPED_MODELS[(256, True)]))
+    assert off.chained_models is False
+    assert solvers.create("gcn:chained_models=true").chained_models is True
+
+
 @pytest.mark.parametrize("descriptor", ["sift", "binary"])
 def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descriptor):
     """Views of 8 keypoints: too few for geometric verification (MIN_SEEDS), and the edge head,

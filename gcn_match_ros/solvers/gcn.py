@@ -67,6 +67,11 @@ class GCNSolverConfig(SolverConfig):
             window's trusted two-view geometry (:mod:`gcn_match_ros.edges.consistency`).
         unverified_threshold: the score a pair needs on a view pair with enough keypoints but
             no trusted model (views that most likely share no scene).
+        chained_models: with ``verify``, view pairs without a trusted model get one fitted on
+            the pairs that tracks chain through other views, when it has trusted support
+            (:mod:`gcn_match_ros.edges.consistency`); None: the loaded model's choice
+            (``config["solver"]["chained_models"]``: true for the shipped ORB model, see
+            models/README.md), else False.
     """
 
     graph: str = "checkpoint"
@@ -78,6 +83,7 @@ class GCNSolverConfig(SolverConfig):
     descriptor_fallback: bool = True
     verify: bool = True
     unverified_threshold: float = UNVERIFIED_THRESHOLD
+    chained_models: Optional[bool] = None
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -128,6 +134,13 @@ class GCNSolver(Solver):
         if self.config.threshold >= 0:
             return self.config.threshold
         return float((self.meta["config"].get("solver") or {}).get("threshold", 0.5))
+
+    @property
+    def chained_models(self) -> bool:
+        """The chained_models setting, else the loaded model's choice, else False."""
+        if self.config.chained_models is not None:
+            return self.config.chained_models
+        return bool((self.meta["config"].get("solver") or {}).get("chained_models", False))
 
     @property
     def descriptor_kinds(self) -> Tuple[Tuple[int, bool], ...]:
@@ -195,7 +208,8 @@ class GCNSolver(Solver):
     def _verified(self, problem: Problem, soft: SoftMatches, geometry: WindowGeometry):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
         with stage("rounding"):
-            keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold)
+            keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
+                                          self.chained_models)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
