@@ -20,7 +20,7 @@ import numpy as np
 from .geometry import triangulate_checked, unproject
 from .problem import Problem
 
-__all__ = ["LandmarkMap", "MapConfig", "held_out_reprojection"]
+__all__ = ["LandmarkMap", "MapConfig", "held_out_sighting_errors", "reprojection_summary"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +87,14 @@ class LandmarkMap:
                 mapped.append(lm)
         return mapped
 
+    def mapped(self, landmark_ids: np.ndarray) -> List[int]:
+        """Indices of the keypoints whose landmark is mapped (:meth:`held_out_errors`' order).
+
+        Shapes: landmark_ids (N,) -> M indices.
+        """
+        ids = np.asarray(landmark_ids)
+        return [i for i in np.flatnonzero(ids >= 0).tolist() if int(ids[i]) in self.points]
+
     def held_out_errors(self, landmark_ids: np.ndarray, keypoints: np.ndarray, view_index: np.ndarray,
                         K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """How well the map predicts a window it has not seen: the reprojection error of each
@@ -100,7 +108,7 @@ class LandmarkMap:
             (M,) pixels, one per keypoint of a mapped landmark (inf: the point is behind the camera).
         """
         ids = np.asarray(landmark_ids)
-        rows = [i for i in np.flatnonzero(ids >= 0).tolist() if int(ids[i]) in self.points]
+        rows = self.mapped(ids)
         if not rows:
             return np.zeros(0)
         X = np.array([self.points[int(ids[i])] for i in rows])                 # (M, 3)
@@ -133,8 +141,8 @@ class LandmarkMap:
         return ids, pts, counts
 
 
-def held_out_reprojection(problems: Sequence[Problem], landmark_ids: Sequence[np.ndarray], stamps_ns: Sequence[int],
-                          config: MapConfig = MapConfig()) -> Dict[str, float]:
+def held_out_sighting_errors(problems: Sequence[Problem], landmark_ids: Sequence[np.ndarray],
+                             stamps_ns: Sequence[int], config: MapConfig = MapConfig()) -> Dict[Tuple[int, int], float]:
     """A mapping consumer's view of a sequence's landmark ids: each window is predicted by the
     map of the windows before it (:meth:`LandmarkMap.held_out_errors`), then added.
 
@@ -143,15 +151,22 @@ def held_out_reprojection(problems: Sequence[Problem], landmark_ids: Sequence[np
             window (N,) ids; stamps_ns: the windows' times.
 
     Returns:
-        median_px: median held-out reprojection error; within_px: share within the map's
-        ``max_reprojection_px``; predicted: sightings predicted (mapped landmarks seen again).
+        (window, keypoint) -> reprojection error [px] of each sighting the map predicted (a
+        mapped landmark seen again).
     """
-    landmark_map, errors = LandmarkMap(config), []
-    for p, ids, stamp in zip(problems, landmark_ids, stamps_ns):
+    landmark_map, errors = LandmarkMap(config), {}
+    for w, (p, ids, stamp) in enumerate(zip(problems, landmark_ids, stamps_ns)):
         sightings = (ids, p.keypoints, p.view_index, p.K, p.R, p.t)
-        errors.append(landmark_map.held_out_errors(*sightings))
+        keys = [(w, i) for i in landmark_map.mapped(ids)]
+        errors.update(zip(keys, landmark_map.held_out_errors(*sightings).tolist()))
         landmark_map.add_window(*sightings, stamp)
-    err = np.concatenate(errors) if errors else np.zeros(0)
+    return errors
+
+
+def reprojection_summary(errors: Sequence[float], config: MapConfig = MapConfig()) -> Dict[str, float]:
+    """median_px: median held-out reprojection error; within_px: share within the map's
+    ``max_reprojection_px``; predicted: how many (NaN statistics without any)."""
+    err = np.asarray(list(errors), np.float64)
     return {"median_px": float(np.median(err)) if err.size else float("nan"),
             "within_px": float(np.mean(err <= config.max_reprojection_px)) if err.size else float("nan"),
             "predicted": float(err.size)}

@@ -231,6 +231,50 @@ def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(monkeypatch):
     assert per_window[4] > 0                             # a new motion: re-fitted
 
 
+def _rig_window(xy, descs):
+    """Camera a sees ``xy``, camera b the same points 3 px to the right; the tracks pair them."""
+    n = len(xy)
+    return (np.array([0, n, 2 * n]), np.concatenate([xy, xy + [3.0, 0.0]]),
+            np.concatenate([descs, descs]).astype(np.float32), np.r_[np.arange(n), np.arange(n)])
+
+
+def test_a_point_re_found_after_a_gap_is_checked_through_the_others():
+    """Points 0-9 are missed in window 1; in window 2 points 0-4 are back where the motion puts
+    them, and a look-alike of point 5 sits 25 px below its place. Too few re-found points to fit
+    the motion since window 0, but the points seen in all three windows bridge it: the right
+    ones keep their ids, the look-alike is refused."""
+    rng = np.random.default_rng(9)
+    P = 60
+    base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
+    noisy = lambda: base + 0.02 * rng.normal(size=base.shape)  # noqa: E731
+    tracker = LandmarkTracker()
+    ids0, _ = tracker.update(CAMS, *_rig_window(xy, base), 0)
+    ids1, _ = tracker.update(CAMS, *_rig_window(xy[10:] + [6.0, 0.0], noisy()[10:]), PERIOD)
+    assert np.array_equal(ids1, np.r_[ids0[10:P], ids0[P + 10:]])
+    back = np.r_[0:6, 10:P]
+    now = xy[back] + [12.0, 0.0]
+    now[5] += [0.0, 25.0]  # point 5 is gone; its look-alike sits here
+    ids2, _ = tracker.update(CAMS, *_rig_window(now, noisy()[back]), 2 * PERIOD)
+    assert np.array_equal(ids2[:5], ids0[:5])            # re-found, checked, continued
+    assert ids2[5] >= 0 and ids2[5] not in ids0           # the look-alike: a new landmark
+    assert np.array_equal(ids2[6:back.size], ids0[10:P])
+
+
+def test_a_re_finding_nothing_can_check_is_refused():
+    """Points 0-4 are seen in window 0, missed in window 1 (where only new points appear) and
+    back in window 2: no continuation saw window 0, too few to fit the motion alone. Unchecked,
+    their re-finding is refused (on real sequences such re-findings were mostly wrong)."""
+    rng = np.random.default_rng(10)
+    P = 60
+    base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
+    tracker = LandmarkTracker()
+    ids0, _ = tracker.update(CAMS, *_rig_window(xy[:5], base[:5]), 0)
+    tracker.update(CAMS, *_rig_window(xy[5:] + [6.0, 0.0], base[5:]), PERIOD)
+    ids2, _ = tracker.update(CAMS, *_rig_window(xy + [12.0, 0.0], base + 0.02 * rng.normal(size=base.shape)),
+                             2 * PERIOD)
+    assert not np.isin(ids2[:5], ids0).any()
+
+
 def test_true_points_from_bag_labels():
     from gcn_match_ros.landmark_metrics import true_points
 
