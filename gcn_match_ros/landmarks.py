@@ -250,38 +250,25 @@ class LandmarkTracker:
         for sel, bridge in [(g, b) for g, s, b in zip(groups, still, bridge_of) if not s]:
             if checked[unit_of_row[pair_row[sel]]].all():
                 continue
-            if bridge is not None:
-                # re-found after a gap: fitted with the bridge pairs of that frame pair, and checked
-                n_own = sel.size
-                fa, fb = np.concatenate([xa[sel], bridge[0]]), np.concatenate([xb[sel], bridge[1]])
-                fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
-                model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
-                if model is None:
-                    continue
-                rh, rf, inliers_h, inliers_f = _motion_support(model, fa, fb)
-                if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
-                    continue
-                agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
-                    (rf <= MOTION_SLACK * model.epipolar_px)
-                np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree[:n_own], 1, -1))
-                np.add.at(checked, unit_of_row[pair_row[sel]], 1)
-                continue
+            # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
+            fa, fb = (xa[sel], xb[sel]) if bridge is None else (np.concatenate([xa[sel], bridge[0]]),
+                                                                  np.concatenate([xb[sel], bridge[1]]))
             # consecutive frames of a camera pair: last window's model first (a rig moving
             # steadily moves alike window after window), re-fitted when it no longer explains
             # nearly all pairs
             cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
             consecutive = seen_ns[sel[0]] == self._previous_ns
             model = self._motion_models.get(cams) if consecutive else None
-            support = _motion_support(model, xa[sel], xb[sel]) if model is not None else None
-            if support is None or max(support[2:]) < MOTION_REUSE_SHARE * sel.size:
+            support = _motion_support(model, fa, fb) if model is not None else None
+            if support is None or max(support[2:]) < MOTION_REUSE_SHARE * fa.shape[0]:
                 # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
-                fit = sel[np.linspace(0, sel.size - 1, min(sel.size, MOTION_FIT_PAIRS)).astype(np.int64)]
-                model = fit_pair(xa[fit], xb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
+                fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
+                model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
                 if model is None:
                     continue
-                support = _motion_support(model, xa[sel], xb[sel])
+                support = _motion_support(model, fa, fb)
             rh, rf, inliers_h, inliers_f = support
-            if not trusted_support(max(inliers_h, inliers_f), sel.size):
+            if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
             if consecutive:
                 self._motion_models[cams] = model
@@ -290,7 +277,7 @@ class LandmarkTracker:
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
-            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
+            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree[:sel.size], 1, -1))
             np.add.at(checked, unit_of_row[pair_row[sel]], 1)
         gap = np.zeros(len(units), bool)
         gap[cont] = self._seen_ns[best_lm[cont]] != self._previous_ns
