@@ -78,6 +78,8 @@ class WindowGeometry:
         self.verified = np.zeros((problem.n_views, problem.n_views), bool)
         for a, b in self.models:
             self.verified[a, b] = self.verified[b, a] = True
+        #: (V, V) symmetric: no trusted model although both views are large enough for one
+        self.unverified = ~self.verified & ~(self.small[:, None] | self.small[None, :])
         self._offsets = problem.view_offsets
         self._view_list = self.view_index.tolist()
         self._small_list = self.small.tolist()
@@ -85,9 +87,7 @@ class WindowGeometry:
 
     def unverified_pairs(self) -> List[ViewPair]:
         """View pairs (a, b), a < b, without a trusted model whose views are large enough to have one."""
-        V = self.verified.shape[0]
-        return [(a, b) for a in range(V) for b in range(a + 1, V)
-                if not self.verified[a, b] and not (self._small_list[a] or self._small_list[b])]
+        return [(int(a), int(b)) for a, b in np.argwhere(np.triu(self.unverified, 1))]
 
     def with_chained_models(self, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
                             threshold: float) -> "WindowGeometry":
@@ -193,8 +193,7 @@ class WindowGeometry:
     def keep(self, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray) -> np.ndarray:
         """(M,) bool: the pairs a solver may publish (module docstring)."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        va, vb = self.view_index[rows], self.view_index[cols]
-        unverified = ~self.verified[va, vb] & ~(self.small[va] | self.small[vb])
+        unverified = self.unverified[self.view_index[rows], self.view_index[cols]]
         return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
 
 
@@ -266,7 +265,7 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
             geometry = chained
             keep = geometry.keep(rows, cols, scores)
     merged = keep & (scores >= threshold)
-    check = TrackCheck(geometry, np.asarray(rows)[merged], np.asarray(cols)[merged])
-    track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, np.asarray(rows)[keep],
-                          np.asarray(cols)[keep], np.asarray(scores)[keep], threshold, compatible=check)
+    check = TrackCheck(geometry, rows[merged], cols[merged])
+    track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[keep], cols[keep], scores[keep],
+                          threshold, compatible=check)
     return keep, track
