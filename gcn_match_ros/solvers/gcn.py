@@ -133,14 +133,19 @@ class GCNSolver(Solver):
         split; models/README.md), else 0.5."""
         if self.config.threshold >= 0:
             return self.config.threshold
-        return float((self.meta["config"].get("solver") or {}).get("threshold", 0.5))
+        return float(self._model_choice("threshold", 0.5))
 
     @property
     def chained_models(self) -> bool:
         """The chained_models setting, else the loaded model's choice, else False."""
         if self.config.chained_models is not None:
             return self.config.chained_models
-        return bool((self.meta["config"].get("solver") or {}).get("chained_models", False))
+        return bool(self._model_choice("chained_models", False))
+
+    def _model_choice(self, name: str, default):
+        """A solver setting stored with the loaded model (``config["solver"]``, chosen after
+        training: models/README.md), else ``default``."""
+        return (self.meta["config"].get("solver") or {}).get(name, default)
 
     @property
     def descriptor_kinds(self) -> Tuple[Tuple[int, bool], ...]:
