@@ -316,6 +316,19 @@ class _GateSolver(Solver):
     gate = threading.Event()
     entered = threading.Event()
 
+    @classmethod
+    def arm(cls):
+        """Block the next solve (after the node's warm-up) until :meth:`release`."""
+        cls.gate.clear()
+        cls.entered.clear()
+        cls.armed = True
+
+    @classmethod
+    def release(cls):
+        """Let every solve through from now on."""
+        cls.armed = False
+        cls.gate.set()
+
     def match(self, problem, graph, similarity):
         if type(self).armed:
             type(self).entered.set()
@@ -327,80 +340,72 @@ class _GateSolver(Solver):
 
 @pytest.fixture
 def gate_solver():
-    """_GateSolver registered (at test time, so collecting other test files never sees it)."""
+    """_GateSolver registered (at test time, so collecting other test files never sees it);
+    released whatever the test does, so a failing test never leaves a worker blocked."""
     if _GateSolver.name not in available_solvers():
         register(_GateSolver)
-    return _GateSolver
+    try:
+        yield _GateSolver
+    finally:
+        _GateSolver.release()
 
 
 def test_matcher_worker_drops_superseded_stale_and_survives_solver_errors(harness_factory, gate_solver):
     h = harness_factory(solver="test_gate", max_age=1.0)
     scene = PermutedScene(points=20, dim=32, distractors=0, seed=2)
-    gate = _GateSolver
-    gate.gate.clear()
-    gate.entered.clear()
-    gate.armed = True
-    try:
-        def window(t, points=None):
-            for cam in CAMS:
-                f, _ = scene.frame(cam, t)
-                if points is not None and cam == "cam0":
-                    f.keypoints, f.descriptors = f.keypoints[:points], f.descriptors[:points]
-                    f.scales, f.orientations = f.scales[:points], f.orientations[:points]
-                h.publish(f)
+    gate = gate_solver
+    gate.arm()
 
-        t = time.time()
-        window(t)            # taken by the worker, which blocks in the solver
-        assert h.spin_until(gate.entered.is_set)
-        window(t + 0.1)      # pending ...
-        window(t + 0.2)      # ... replaced: superseded
-        h.wait_diag(lambda v: v.get("windows dropped superseded") == "1")
-        # Let the pending window grow older than max_age, then release the worker.
-        assert h.spin_until(lambda: time.time() - (t + 0.2) > 1.05, timeout=5.0)
-        gate.armed = False
-        gate.gate.set()
-        h.wait_diag(lambda v: v.get("windows dropped stale_window") == "1" and v.get("windows published") == "1")
-        window(time.time(), points=13)   # the solver raises on this one
-        h.wait_diag(lambda v: v.get("windows dropped solver_error") == "1")
-        window(time.time())
-        h.wait_windows(2)
-        _, values = h.wait_diag(lambda v: v.get("windows published") == "2")
-        assert values["windows dropped total"] == "3" and h.matcher._worker.is_alive()
-        assert stamp_to_ns(h.windows[0].header.stamp) == seconds_to_ns(t)
-    finally:
-        gate.armed = False
-        gate.gate.set()
+    def window(t, points=None):
+        for cam in CAMS:
+            f, _ = scene.frame(cam, t)
+            if points is not None and cam == "cam0":
+                f.keypoints, f.descriptors = f.keypoints[:points], f.descriptors[:points]
+                f.scales, f.orientations = f.scales[:points], f.orientations[:points]
+            h.publish(f)
+
+    t = time.time()
+    window(t)            # taken by the worker, which blocks in the solver
+    assert h.spin_until(gate.entered.is_set)
+    window(t + 0.1)      # pending ...
+    window(t + 0.2)      # ... replaced: superseded
+    h.wait_diag(lambda v: v.get("windows dropped superseded") == "1")
+    # Let the pending window grow older than max_age, then release the worker.
+    assert h.spin_until(lambda: time.time() - (t + 0.2) > 1.05, timeout=5.0)
+    gate.release()
+    h.wait_diag(lambda v: v.get("windows dropped stale_window") == "1" and v.get("windows published") == "1")
+    window(time.time(), points=13)   # the solver raises on this one
+    h.wait_diag(lambda v: v.get("windows dropped solver_error") == "1")
+    window(time.time())
+    h.wait_windows(2)
+    _, values = h.wait_diag(lambda v: v.get("windows published") == "2")
+    assert values["windows dropped total"] == "3" and h.matcher._worker.is_alive()
+    assert stamp_to_ns(h.windows[0].header.stamp) == seconds_to_ns(t)
 
 
 def test_matcher_degrades_to_fewer_keypoints_when_behind_and_says_so(harness_factory, gate_solver):
     h = harness_factory(solver="test_gate", max_keypoints=40, degrade_min_keypoints=10, max_age=3.0)
     scene = PermutedScene(points=36, dim=32, distractors=0, seed=4)
-    gate = _GateSolver
-    gate.gate.clear()
-    gate.entered.clear()
-    gate.armed = True
-    try:
-        def window(t):
-            for cam in CAMS:
-                h.publish(scene.frame(cam, t)[0])
+    gate = gate_solver
+    gate.arm()
 
-        t = time.time()
-        window(t)                 # the worker blocks in the solver
-        assert h.spin_until(gate.entered.is_set)
-        for k in (1, 2, 3):       # two of these are superseded: the budget falls 40 -> 30 -> 22
-            window(t + 0.1 * k)
-        h.wait_diag(lambda v: v.get("windows dropped superseded") == "2")
-        gate.armed = False
-        gate.gate.set()
-        h.wait_windows(2)
-        status, values = h.wait_diag(lambda v: v.get("windows published") == "2")
-        assert values["keypoint budget"] == "22" and values["windows degraded"] == "1"
-        assert status.level == DiagnosticStatus.WARN and "degraded under load" in status.message
-        sizes = np.diff(np.asarray(h.windows[1].view_offsets))
-        assert sizes.tolist() == [22, 22, 22]  # the best-scored 22 of each frame's 36
-    finally:
-        gate.armed = False
-        gate.gate.set()
+    def window(t):
+        for cam in CAMS:
+            h.publish(scene.frame(cam, t)[0])
+
+    t = time.time()
+    window(t)                 # the worker blocks in the solver
+    assert h.spin_until(gate.entered.is_set)
+    for k in (1, 2, 3):       # two of these are superseded: the budget falls 40 -> 30 -> 22
+        window(t + 0.1 * k)
+    h.wait_diag(lambda v: v.get("windows dropped superseded") == "2")
+    gate.release()
+    h.wait_windows(2)
+    status, values = h.wait_diag(lambda v: v.get("windows published") == "2")
+    assert values["keypoint budget"] == "22" and values["windows degraded"] == "1"
+    assert status.level == DiagnosticStatus.WARN and "degraded under load" in status.message
+    sizes = np.diff(np.asarray(h.windows[1].view_offsets))
+    assert sizes.tolist() == [22, 22, 22]  # the best-scored 22 of each frame's 36
 
 
 def test_matcher_rejects_invalid_parameter_changes(harness_factory):
