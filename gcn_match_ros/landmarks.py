@@ -293,8 +293,8 @@ class LandmarkTracker:
         Shapes: row_lm, row_column (R,), row_xy (R, 2) per continuing keypoint; pair_cam, seen_ns
         (P,) per pair of :meth:`_motion_checked`.
         """
-        wanted = {(int(c), int(t)) for c, t in zip(pair_cam[seen_ns != self._previous_ns],
-                                                    seen_ns[seen_ns != self._previous_ns])}
+        gap = seen_ns != self._previous_ns
+        wanted = set(zip(pair_cam[gap].tolist(), seen_ns[gap].tolist()))
         if not wanted:
             return {}
         consecutive = self._seen_ns[row_lm] == self._previous_ns
