@@ -11,20 +11,38 @@ from :func:`estimate_universe_size`, which reads it off the spectrum of the inpu
 """
 from __future__ import annotations
 
-from typing import Callable, Dict, List, Optional
+from typing import Callable, NamedTuple, Optional
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["greedy_tracks", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs",
+__all__ = ["greedy_tracks", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs",
            "is_cycle_consistent"]
 
 
+class MergeTest(NamedTuple):
+    """A further test of every merge :func:`greedy_tracks` is about to make, compiled.
+
+    ``test(data, members, n_a, n_b) -> bool`` is a ``numba.njit`` function; ``members`` holds
+    the keypoint indices of the two tracks, the first ``n_a`` of one, then the ``n_b`` of the
+    other. False refuses the merge (e.g. members that disagree with their views' geometry,
+    :class:`gcn_match_ros.edges.consistency.TrackCheck`). ``data``: the tuple it reads.
+    """
+
+    test: Callable
+    data: tuple
+
+
+@numba.njit(cache=True)
+def _accept_every_merge(data, members, n_a, n_b):
+    return True
+
+
 def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                  scores: np.ndarray, threshold: float = 0.5,
-                  compatible: Optional[Callable[[List[int], List[int]], bool]] = None) -> np.ndarray:
+                  scores: np.ndarray, threshold: float = 0.5, compatible: Optional[MergeTest] = None) -> np.ndarray:
     """Merge keypoints into tracks from the best-scored pair down, never two of one view.
 
     Args:
@@ -32,46 +50,75 @@ def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: 
         view_index: (N,) view of each keypoint.
         rows, cols, scores: (M,) candidate pairs and their scores.
         threshold: pairs scoring below it are never merged.
-        compatible: optional further test of each merge, called with the members (keypoint
-            indices) of the two tracks about to be joined; False refuses the merge (e.g.
-            members that disagree with their views' geometry,
-            :class:`gcn_match_ros.edges.consistency.TrackCheck`).
+        compatible: optional further test of each merge (:class:`MergeTest`), asked with the
+            members of the two tracks about to be joined.
 
     Returns:
         (N,) int64 track ids 0..T-1 for keypoints in a track of >= 2 keypoints, -1 otherwise.
     """
     view_index = np.asarray(view_index, np.int64)
-    keep = np.flatnonzero(np.asarray(scores) >= threshold)
-    order = keep[np.argsort(-np.asarray(scores)[keep], kind="stable")]
-    # Plain Python lists: scalar access in this loop is several times faster than on numpy arrays.
-    parent = list(range(n_nodes))
-    # Track view sets as Python ints (bit v = view v): any number of views, O(1) disjointness test.
-    views = [1 << int(v) for v in view_index]
-    members: Dict[int, List[int]] = {}
-    rows, cols = np.asarray(rows)[order].tolist(), np.asarray(cols)[order].tolist()
-
-    def find(a: int) -> int:
-        root = a
-        while parent[root] != root:
-            root = parent[root]
-        while parent[a] != root:  # path compression
-            parent[a], a = root, parent[a]
-        return root
-
-    for a, b in zip(rows, cols):
-        ra, rb = find(a), find(b)
-        if ra == rb or views[ra] & views[rb]:
-            continue
-        if compatible is not None:
-            ma, mb = members.get(ra, [ra]), members.get(rb, [rb])
-            if not compatible(ma, mb):
-                continue
-            members[ra] = ma + mb
-            members.pop(rb, None)
-        parent[rb] = ra
-        views[ra] |= views[rb]
-    roots = np.array([find(a) for a in range(n_nodes)], dtype=np.int64)
+    scores = np.asarray(scores)
+    keep = np.flatnonzero(scores >= threshold)
+    order = keep[np.argsort(-scores[keep], kind="stable")]
+    test = compatible if compatible is not None else MergeTest(_accept_every_merge, ())
+    roots = _merge_greedily(int(n_nodes), view_index, np.asarray(rows, np.int64)[order],
+                            np.asarray(cols, np.int64)[order], int(view_index.max()) + 1 if view_index.size else 1,
+                            test.test, test.data)
     return relabel_tracks(roots)
+
+
+@numba.njit
+def _merge_greedily(n, view, rows, cols, n_views, test, data):
+    """Union-find over the pairs in order; two tracks merge when they share no view and
+    ``test`` accepts them. Returns (n,) each keypoint's root. Compiled: the merge loop runs
+    over every scored pair of a window (10⁴–10⁵). Not cached: numba cannot cache a function
+    taking another (~0.5 s to compile once per process and test)."""
+    parent = np.arange(n)
+    # each root's members as a linked list: first, next, last, count
+    first, nxt, last = np.arange(n), np.full(n, -1), np.arange(n)
+    count = np.ones(n, np.int64)
+    stamp = np.full(n_views, -1)  # stamp[v] == e: view v holds a member of the first track at pair e
+    members = np.empty(n, np.int64)
+    for e in range(rows.shape[0]):
+        ra, rb = _root(parent, rows[e]), _root(parent, cols[e])
+        if ra == rb:
+            continue
+        k, x = 0, first[ra]
+        while x >= 0:
+            stamp[view[x]] = e
+            members[k] = x
+            k += 1
+            x = nxt[x]
+        shared, x = False, first[rb]
+        while x >= 0:
+            if stamp[view[x]] == e:
+                shared = True
+                break
+            members[k] = x
+            k += 1
+            x = nxt[x]
+        if shared or not test(data, members[:k], count[ra], count[rb]):
+            continue
+        parent[rb] = ra
+        nxt[last[ra]] = first[rb]
+        last[ra] = last[rb]
+        count[ra] += count[rb]
+    roots = np.empty(n, np.int64)
+    for a in range(n):
+        roots[a] = _root(parent, a)
+    return roots
+
+
+@numba.njit(cache=True)
+def _root(parent, a):
+    root = a
+    while parent[root] != root:
+        root = parent[root]
+    while parent[a] != root:  # path compression
+        nxt = parent[a]
+        parent[a] = root
+        a = nxt
+    return root
 
 
 def relabel_tracks(labels: np.ndarray) -> np.ndarray:

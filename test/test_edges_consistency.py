@@ -120,9 +120,9 @@ def test_two_witnesses_vouch_for_an_unverified_view_pair():
     assert not (track[w] == track[x] == track[y] == track[z])
 
 
-def test_batched_agreement_equals_each_models_own_check():
-    """WindowGeometry.agree batches every view pair's check, agree_pairs checks a few pairs in
-    plain Python; both must answer as PairModel.agrees."""
+def test_batched_and_compiled_agreement_equal_each_models_own_check():
+    """WindowGeometry.agree batches every view pair's check, the track check (compiled) tests a
+    merge's member pairs one by one at CHAIN_SLACK; both must answer as PairModel.agrees."""
     rng = np.random.default_rng(4)
     p = _window(sizes=(30, 30, 30))
     F = np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]])
@@ -132,15 +132,19 @@ def test_batched_agreement_equals_each_models_own_check():
     rows = rng.integers(0, 30, 200)
     cols = np.where(rng.random(200) < 0.5, 30, 60) + rng.integers(0, 30, 200)
     kp = p.keypoints.astype(np.float64)
+    nothing_kept = np.zeros(0, np.int64)
+    check = TrackCheck(geometry, nothing_kept, nothing_kept)
     for slack in (1.0, CHAIN_SLACK):
         got = geometry.agree(rows, cols, slack)
-        assert geometry.agree_pairs(list(zip(rows.tolist(), cols.tolist())), slack) == got.tolist()
-        assert geometry.agree_pairs(list(zip(cols.tolist(), rows.tolist())), slack) == got.tolist()
         for r, c, g in zip(rows, cols, got):
             model = models[(0, p.view_index[c])]
             want = False if model is None else model.agrees(kp[[r]], kp[[c]], slack)[0]
             assert g == want
+            if slack == CHAIN_SLACK:  # two lone keypoints, either order: no witnesses
+                assert check.test(check.data, np.array([r, c]), 1, 1) == g
+                assert check.test(check.data, np.array([c, r]), 1, 1) == g
         assert got.any() and not got.all()
+    assert check.refused == 2 * int((~geometry.agree(rows, cols, CHAIN_SLACK)).sum())
 
 
 def _chains(p, n, scramble_last=False, seed=0):

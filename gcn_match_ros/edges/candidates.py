@@ -23,8 +23,10 @@ and at test time alike.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Dict, List, Optional, Tuple
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
@@ -32,7 +34,7 @@ import torch
 
 from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance
-from ..geometry import epipolar_distance_matrix, transfer
+from ..geometry import homogeneous, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
 from ..timing import stage
@@ -287,29 +289,85 @@ def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, p
         ok = dist < px
         out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
     if model.F is not None:
-        D = epipolar_distance_matrix(model.F, xa, xb)
-        m = np.where(D < px, sim, -np.inf)
-        j = m.argmax(1)
-        ok = np.isfinite(m[np.arange(len(xa)), j])
+        la, lb = homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F  # epipolar lines in b, in a
+        j, i = _best_near_lines(sim, la, lb, xa, xb, px)
+        ok = j >= 0
         out_a.append(np.flatnonzero(ok)); out_b.append(j[ok])
-        i = m.argmax(0)
-        ok = np.isfinite(m[i, np.arange(len(xb))])
+        ok = i >= 0
         out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
     if not out_a:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(out_a).astype(np.int64), np.concatenate(out_b).astype(np.int64)
 
 
+@numba.njit(cache=True)
+def _best_near_lines(sim, la, lb, xa, xb, px):
+    """For each keypoint of a, the most similar keypoint of b within ``px`` of its epipolar line
+    and with a within ``px`` of b's line (:func:`gcn_match_ros.geometry.epipolar_distance_matrix`
+    < px), and the same for each keypoint of b; -1 where none. The first on ties, as argmax.
+    Compiled: one pass over the na x nb pairs, no distance matrix.
+
+    Shapes: sim (na, nb); la (na, 3) lines in b, lb (nb, 3) lines in a; xa (na, 2), xb (nb, 2)
+    -> (na,), (nb,) int64.
+    """
+    na, nb = sim.shape
+    best_b = np.full(na, -1, np.int64)
+    best_a = np.full(nb, -1, np.int64)
+    score_b = np.full(na, -np.inf, np.float32)
+    score_a = np.full(nb, -np.inf, np.float32)
+    norm_b = np.empty(nb)
+    for b in range(nb):
+        norm_b[b] = max(math.sqrt(lb[b, 0] ** 2 + lb[b, 1] ** 2), 1e-12)
+    for a in range(na):
+        norm_a = max(math.sqrt(la[a, 0] ** 2 + la[a, 1] ** 2), 1e-12)
+        for b in range(nb):
+            if abs(la[a, 0] * xb[b, 0] + la[a, 1] * xb[b, 1] + la[a, 2]) / norm_a >= px:
+                continue  # most pairs: b is off a's line
+            if abs(xa[a, 0] * lb[b, 0] + xa[a, 1] * lb[b, 1] + lb[b, 2]) / norm_b[b] < px:
+                s = sim[a, b]
+                if s > score_b[a]:
+                    score_b[a], best_b[a] = s, b
+                if s > score_a[b]:
+                    score_a[b], best_a[b] = s, a
+    return best_b, best_a
+
+
 def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
-    """Fraction of third views closing a triangle with each edge through ``mask`` edges."""
+    """Fraction of third views closing a triangle with each edge through ``mask`` edges.
+
+    Shapes: view (n,); rows, cols, mask (M,) -> (M,) float64.
+    """
     if V < 3:
         return np.zeros(rows.shape[0])
     r, c = rows[mask], cols[mask]
-    A = sp.csr_matrix((np.ones(2 * r.shape[0]), (np.concatenate([r, c]), np.concatenate([c, r]))), shape=(n, n))
-    A.data[:] = 1.0
-    # common neighbours w of a and b (row-wise product), then the distinct views among them;
-    # edges join different views, so a common neighbour is always in a third view
-    common = A[rows].multiply(A[cols]).tocoo()
-    views_seen = np.zeros((rows.shape[0], V), bool)  # a table, not np.unique: O(nnz), no sort
-    views_seen[common.row, view[common.col]] = True
-    return views_seen.sum(1) / (V - 2)
+    # sorted, duplicate-free neighbour lists (CSR) of the mask's graph
+    A = sp.csr_matrix((np.ones(2 * r.shape[0], np.int8), (np.concatenate([r, c]), np.concatenate([c, r]))),
+                      shape=(n, n))
+    A.sum_duplicates()
+    views_seen = _common_neighbour_views(A.indptr.astype(np.int64), A.indices.astype(np.int64),
+                                         np.asarray(view, np.int64), np.asarray(rows, np.int64),
+                                         np.asarray(cols, np.int64), V)
+    return views_seen / (V - 2)
+
+
+@numba.njit(cache=True)
+def _common_neighbour_views(indptr, indices, view, rows, cols, V):
+    """Per edge (rows[m], cols[m]) the number of distinct views among the two keypoints' common
+    neighbours in the CSR graph (indptr, indices); edges join different views, so each common
+    neighbour lies in a third view. Compiled: ~10⁵ edges a window, dozens of neighbours each."""
+    out = np.zeros(rows.shape[0], np.int64)
+    marked = np.full(indptr.shape[0] - 1, -1, np.int64)  # marked[c] == a: c neighbours a
+    counted = np.full(V, -1, np.int64)                   # counted[k] == m: view k counted for m
+    current = -1  # the keypoint whose neighbours are marked (edges come grouped by row)
+    for m in range(rows.shape[0]):
+        a, b = rows[m], cols[m]
+        if a != current:
+            for p in range(indptr[a], indptr[a + 1]):
+                marked[indices[p]] = a
+            current = a
+        for p in range(indptr[b], indptr[b + 1]):
+            c = indices[p]
+            if marked[c] == a and counted[view[c]] != m:
+                counted[view[c]] = m
+                out[m] += 1
+    return out

@@ -37,11 +37,12 @@ from __future__ import annotations
 import math
 from typing import Dict, List, Optional, Tuple
 
+import numba
 import numpy as np
 
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
-from ..rounding import greedy_tracks, tracks_to_pairs
+from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
 from .verify import MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair
 
 __all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
@@ -81,9 +82,6 @@ class WindowGeometry:
         #: (V, V) symmetric: no trusted model although both views are large enough for one
         self.unverified = ~self.verified & ~(self.small[:, None] | self.small[None, :])
         self._offsets = problem.view_offsets
-        self._view_list = self.view_index.tolist()
-        self._small_list = self.small.tolist()
-        self._transfers: Dict[ViewPair, tuple] = {}
 
     def unverified_pairs(self) -> List[ViewPair]:
         """View pairs (a, b), a < b, without a trusted model whose views are large enough to have one."""
@@ -118,57 +116,25 @@ class WindowGeometry:
             return self
         return WindowGeometry(self.problem, models, self.unverified_threshold)
 
-    def _transfer_lists(self, a: int, b: int) -> tuple:
-        """For :meth:`agree_pairs`, per keypoint of views a < b what the model maps it to, as
-        Python lists: planar — H x_a and H⁻¹ x_b (pixels, :func:`gcn_match_ros.geometry.transfer`);
-        else F x_a and Fᵀ x_b (lines); then whether planar and the tolerance. Made on first use."""
-        out = self._transfers.get((a, b))
-        if out is None:
-            model = self.models[(a, b)]
-            xa = self.keypoints[self._offsets[a]:self._offsets[a + 1]]
-            xb = self.keypoints[self._offsets[b]:self._offsets[b + 1]]
-            if model.planar:
-                try:
-                    fwd, bwd = transfer(model.H, xa), transfer(np.linalg.inv(model.H), xb)
-                except np.linalg.LinAlgError:  # no pair agrees with a singular H (as verify.residuals)
-                    fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
-                out = (fwd.tolist(), bwd.tolist(), True, model.px)
-            else:
-                out = ((homogeneous(xa) @ model.F.T).tolist(), (homogeneous(xb) @ model.F).tolist(), False,
-                       model.epipolar_px)
-            self._transfers[(a, b)] = out
-        return out
+    def transfers(self, a: int, b: int) -> tuple:
+        """Per keypoint of views a < b (verified) what their model maps it to: planar — H x_a
+        and H⁻¹ x_b (pixels, :func:`gcn_match_ros.geometry.transfer`, in (n, 3) with a zero
+        last column); else F x_a and Fᵀ x_b (lines); then whether planar and the tolerance.
 
-    def agree_pairs(self, pairs: List[Tuple[int, int]], slack: float = 1.0) -> List[bool]:
-        """:meth:`agree` for a few pairs (x, y) at a time, in plain Python: a track check tests
-        a handful of pairs per merge, thousands of merges per window, where numpy's per-call
-        overhead would dominate. The residuals of :func:`.verify.residuals` (a test holds them
-        equal), read from :meth:`_transfer_lists`."""
-        view, small, offs, kp = self._view_list, self._small_list, self._offsets, self.keypoints
-        out = []
-        for x, y in pairs:
-            a, b = view[x], view[y]
-            if a > b:
-                x, y, a, b = y, x, b, a
-            if small[a] or small[b]:
-                out.append(True)
-                continue
-            if not self.verified[a, b]:
-                out.append(False)
-                continue
-            fwd, bwd, planar, tol = self._transfer_lists(a, b)
-            i, j = x - int(offs[a]), y - int(offs[b])
-            xa0, xa1, xb0, xb1 = kp[x, 0], kp[x, 1], kp[y, 0], kp[y, 1]
-            if planar:
-                tb, ta = fwd[i], bwd[j]
-                res = 0.5 * (math.hypot(tb[0] - xb0, tb[1] - xb1) + math.hypot(ta[0] - xa0, ta[1] - xa1))
-            else:
-                lb, la = fwd[i], bwd[j]
-                num = abs(xb0 * lb[0] + xb1 * lb[1] + lb[2])
-                den = math.sqrt(lb[0] ** 2 + lb[1] ** 2 + la[0] ** 2 + la[1] ** 2)
-                res = num / max(den, 1e-12)
-            out.append(res <= slack * tol)
-        return out
+        Returns: (n_a, 3), (n_b, 3) float64, bool, float.
+        """
+        model = self.models[(a, b)]
+        xa = self.keypoints[self._offsets[a]:self._offsets[a + 1]]
+        xb = self.keypoints[self._offsets[b]:self._offsets[b + 1]]
+        if model.planar:
+            try:
+                fwd, bwd = transfer(model.H, xa), transfer(np.linalg.inv(model.H), xb)
+            except np.linalg.LinAlgError:  # no pair agrees with a singular H (as verify.residuals)
+                fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
+            pad = np.zeros((1, 1))
+            return (np.hstack([fwd, np.broadcast_to(pad, (fwd.shape[0], 1))]),
+                    np.hstack([bwd, np.broadcast_to(pad, (bwd.shape[0], 1))]), True, model.px)
+        return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
 
     def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """Whether each pair may be matched on geometric grounds alone: it agrees with its
@@ -197,55 +163,93 @@ class WindowGeometry:
         return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
 
 
-class TrackCheck:
+class TrackCheck(MergeTest):
     """The ``compatible`` test of :func:`gcn_match_ros.rounding.greedy_tracks` that keeps every
-    track consistent as a whole (module docstring).
+    track consistent as a whole (module docstring), compiled: a window asks it thousands of
+    times, a handful of member pairs each.
 
     Args:
         geometry: the window's models.
         rows, cols: (M,) the kept pairs that may be merged (each already passed
             :meth:`WindowGeometry.keep`): the only pairs of unverified view pairs a track may hold.
+
+    Attributes:
+        refused: merges refused so far.
     """
 
-    def __init__(self, geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray) -> None:
-        self.geometry = geometry
+    def __new__(cls, geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray) -> "TrackCheck":
         n = geometry.view_index.shape[0]
-        self._n = n
-        self._kept = set((np.minimum(rows, cols).astype(np.int64) * n + np.maximum(rows, cols)).tolist())
-        self.refused = 0
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        # both orders: a merge looks its member pairs up as they come
+        kept = np.unique(np.concatenate([rows * n + cols, cols * n + rows]))
+        V = geometry.verified.shape[0]
+        pair = np.full((V, V), -1, np.int64)
+        fwd, bwd, planar, tol = [np.zeros((0, 3))], [np.zeros((0, 3))], [], []
+        fwd_start, bwd_start = [], []
+        n_fwd = n_bwd = 0
+        for p, (a, b) in enumerate(sorted(geometry.models)):
+            pair[a, b] = p
+            f, g, is_planar, t = geometry.transfers(a, b)
+            fwd.append(f); bwd.append(g); planar.append(is_planar); tol.append(t)
+            fwd_start.append(n_fwd); bwd_start.append(n_bwd)
+            n_fwd += f.shape[0]; n_bwd += g.shape[0]
+        data = (kept, np.int64(n), geometry.view_index.astype(np.int64), geometry._offsets.astype(np.int64),
+                geometry.keypoints, geometry.small, geometry.verified, pair,
+                np.array(fwd_start, np.int64), np.array(bwd_start, np.int64), np.concatenate(fwd),
+                np.concatenate(bwd), np.array(planar, bool), np.array(tol, np.float64),
+                np.float64(CHAIN_SLACK), np.int64(MIN_WITNESSES), np.zeros(1, np.int64))
+        return super().__new__(cls, _track_agrees, data)
 
-    def __call__(self, members_a: List[int], members_b: List[int]) -> bool:
-        n = self._n
-        unchecked = [(min(x, y), max(x, y)) for x in members_a for y in members_b
-                     if min(x, y) * n + max(x, y) not in self._kept]
-        if not unchecked:
-            return True
-        ok = np.array(self.geometry.agree_pairs(unchecked, CHAIN_SLACK))
-        if not ok.all():
-            rows, cols = np.array(unchecked, np.int64).T
-            # unverified view pairs never agree: there two witnesses must vouch
-            ok |= self._witnessed(rows, cols, members_a + members_b)
-        merged = bool(ok.all())
-        self.refused += not merged
-        return merged
+    @property
+    def refused(self) -> int:
+        return int(self.data[-1][0])
 
-    def _witnessed(self, rows: np.ndarray, cols: np.ndarray, members: List[int]) -> np.ndarray:
-        """(M,) bool: pair m lies in an unverified view pair and at least :data:`MIN_WITNESSES`
-        other members sit in views verified against both of its views. Every member's pairs
-        in verified view pairs are checked (now or at an earlier merge), so two such witnesses
-        pin each keypoint to the intersection of two epipolar lines: a transfer check that
-        needs no direct model."""
-        view = self.geometry.view_index
-        verified = self.geometry.verified
-        member_views = view[np.asarray(members, np.int64)]
-        out = np.zeros(rows.shape[0], bool)
-        for m, (a, b) in enumerate(zip(view[rows].tolist(), view[cols].tolist())):
-            if verified[a, b]:
+
+@numba.njit(cache=True)
+def _track_agrees(data, members, n_a, n_b):
+    """:class:`TrackCheck`'s test: every pair of a first-track member x and a second-track
+    member y is a kept pair, agrees with its verified view pair's model within CHAIN_SLACK x
+    its tolerance (residuals as :func:`.verify.residuals`), lies in an unverifiable view pair,
+    or — in an unverified one — has MIN_WITNESSES members in views verified against both."""
+    (kept, n, view, offsets, kp, small, verified, pair, fwd_start, bwd_start, fwd, bwd, planar, tol,
+     slack, min_witnesses, refused) = data
+    for s in range(n_a):
+        x = members[s]
+        for t in range(n_a, n_a + n_b):
+            y = members[t]
+            key = x * n + y
+            at = np.searchsorted(kept, key)
+            if at < kept.shape[0] and kept[at] == key:
                 continue
-            others = member_views[(member_views != a) & (member_views != b)]
-            witnesses = int((verified[a, others] & verified[b, others]).sum())
-            out[m] = witnesses >= MIN_WITNESSES
-        return out
+            a, b, xa, yb = view[x], view[y], x, y
+            if a > b:
+                a, b, xa, yb = b, a, y, x
+            if small[a] or small[b]:
+                continue
+            if verified[a, b]:
+                p = pair[a, b]
+                i, j = fwd_start[p] + xa - offsets[a], bwd_start[p] + yb - offsets[b]
+                if planar[p]:
+                    res = 0.5 * (math.hypot(fwd[i, 0] - kp[yb, 0], fwd[i, 1] - kp[yb, 1])
+                                 + math.hypot(bwd[j, 0] - kp[xa, 0], bwd[j, 1] - kp[xa, 1]))
+                else:
+                    num = abs(kp[yb, 0] * fwd[i, 0] + kp[yb, 1] * fwd[i, 1] + fwd[i, 2])
+                    den = math.sqrt(fwd[i, 0] ** 2 + fwd[i, 1] ** 2 + bwd[j, 0] ** 2 + bwd[j, 1] ** 2)
+                    res = num / max(den, 1e-12)
+                if res <= slack * tol[p]:
+                    continue
+                refused[0] += 1
+                return False
+            # an unverified view pair: witnesses must vouch (TrackCheck's docstring)
+            witnesses = 0
+            for u in range(n_a + n_b):
+                w = view[members[u]]
+                if w != a and w != b and verified[a, w] and verified[b, w]:
+                    witnesses += 1
+            if witnesses < min_witnesses:
+                refused[0] += 1
+                return False
+    return True
 
 
 def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
