@@ -24,10 +24,10 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
   in no track only continues landmarks (one sighting of a new point is no landmark yet);
 - landmarks not seen for ``max_age_s`` are retired: the state stays bounded on endless streams.
 
-The cost follows the candidates, not keypoints x landmarks: one descriptor product, then the
-image gate from a k-d tree of the last sightings and the cross-camera pairs from the similarity
-threshold; every later step works on those pairs (``test_landmarks`` checks them against the
-rule written as dense matrices).
+The cost: one descriptor product (keypoints x landmarks), then one compiled pass over it that
+keeps each keypoint's two best landmarks through the gate (the gate is tested only where a
+landmark could still enter them); every later step works on those pairs (``test_landmarks``
+checks them against the rule written as dense matrices).
 
 Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
@@ -37,8 +37,8 @@ import dataclasses
 from typing import Dict, List, Sequence, Tuple
 
 import cv2
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, fit_pair, residuals, trusted_support
@@ -156,35 +156,15 @@ class LandmarkTracker:
         """Each keypoint's two best landmarks that pass the gate and their similarity (module
         docstring); ``column`` (N,) is each keypoint's camera column.
 
-        Image-gated pairs come from a k-d tree of the landmarks' last sightings, cross-camera
-        pairs from the similarity threshold; of them each member keeps its two best landmarks
-        (all that the unit's best and second best need), a few passes over N x L in all.
-
         Returns:
             keypoint, landmark (K,) int64 and score (K,) float32, K <= 2N.
         """
         cfg = self.config
         sim = desc @ self._desc.T                                        # (N, L)
-        seen = ~np.isnan(self._xy[:, :, 0])                              # (L, cameras)
-        # near one of its last sightings in any camera
-        sight_lm, sight_cam = np.nonzero(seen)
-        near = cKDTree(keypoints).sparse_distance_matrix(cKDTree(self._xy[sight_lm, sight_cam]), cfg.gate_px,
-                                                         output_type="ndarray")
-        i, lm = near["i"].astype(np.int64), sight_lm[near["j"]]
-        # a camera that saw it: only near pairs, at the usual similarity
-        gated = sim[i, lm]
-        own = seen[lm, column[i]] & (gated >= np.float32(cfg.min_similarity))
-        # a camera that did not: the point moved in from another camera, a higher similarity
-        score = np.where((sim >= np.float32(cfg.cross_similarity)) & ~seen[:, column].T, sim, np.float32(-np.inf))
-        score[i[own], lm[own]] = gated[own]
-        # a unit's best and second-best landmarks are among its members' two best: keep those
-        # (on SIFT-like descriptors many landmarks clear the cross-camera similarity)
-        rows = np.arange(score.shape[0])
-        first = score.argmax(1)
-        first_score = score[rows, first]
-        score[rows, first] = -np.inf
-        second = score.argmax(1)
-        second_score = score[rows, second]
+        first, second, first_score, second_score = _two_best_landmarks(
+            sim, np.asarray(column, np.int64), np.asarray(keypoints, np.float64), self._xy, np.float64(cfg.gate_px),
+            np.float32(cfg.min_similarity), np.float32(cfg.cross_similarity))
+        rows = np.arange(sim.shape[0])
         member = np.concatenate([rows, rows])
         lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
         keep = np.isfinite(best)
@@ -464,3 +444,49 @@ class PerCameraNNLinker:
                                 ids[int(view_offsets[v]):int(view_offsets[v + 1])])
                           for v, cam in enumerate(camera_ids)}
         return ids
+
+
+@numba.njit(cache=True)
+def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cross_similarity):
+    """Per keypoint its best and second-best landmark (-1 and -inf where none) by the rule of
+    the module docstring: a landmark its camera saw counts at ``sim`` >= ``min_similarity`` when
+    the keypoint lies within ``gate_px`` of one of its last sightings (any camera's), one its
+    camera did not see at ``sim`` >= ``cross_similarity``. The first on ties, as argmax.
+    Compiled: one pass over keypoints x landmarks, no (N, L) temporaries.
+
+    Shapes: sim (N, L) float32; column (N,); keypoints (N, 2); xy (L, cameras, 2), NaN where
+    unseen -> (N,) int64 twice, (N,) float32 twice.
+    """
+    n, n_lm = sim.shape
+    gate2 = gate_px * gate_px
+    first = np.full(n, -1, np.int64)
+    second = np.full(n, -1, np.int64)
+    first_score = np.full(n, -np.inf, np.float32)
+    second_score = np.full(n, -np.inf, np.float32)
+    for i in range(n):
+        c = column[i]
+        x, y = keypoints[i, 0], keypoints[i, 1]
+        for lm in range(n_lm):
+            s = sim[i, lm]
+            if not s > second_score[i]:
+                continue  # cannot enter the two best, whatever the gate says
+            if np.isnan(xy[lm, c, 0]):
+                if not s >= cross_similarity:
+                    continue
+            else:
+                if not s >= min_similarity:
+                    continue
+                near = False
+                for k in range(xy.shape[1]):
+                    dx, dy = x - xy[lm, k, 0], y - xy[lm, k, 1]
+                    if dx * dx + dy * dy <= gate2:  # NaN (unseen) compares False
+                        near = True
+                        break
+                if not near:
+                    continue
+            if s > first_score[i]:
+                second[i], second_score[i] = first[i], first_score[i]
+                first[i], first_score[i] = lm, s
+            elif s > second_score[i]:
+                second[i], second_score[i] = lm, s
+    return first, second, first_score, second_score
