@@ -85,7 +85,7 @@ check_env() {
     "$VENV/bin/python" - <<'EOF'
 import array
 import numpy as np
-import torch, cv2, scipy, numba, rosbags, rclpy  # noqa: F401
+import torch, cv2, scipy, numba, threadpoolctl, rosbags, rclpy  # noqa: F401
 from rclpy.serialization import serialize_message, deserialize_message
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 import gcn_match_ros  # noqa: F401

@@ -48,6 +48,7 @@ from .learn.train import train
 from .node_features import FeatureConfig, feature_dim
 from .problem import Problem, load_problem, save_problem, save_result
 from .stream import StreamState, solve_stream
+from .threads import single_blas_thread
 from .windowing import WindowConfig, window_parameters
 
 __all__ = ["main", "build_parser"]
@@ -458,6 +459,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         ddp.init_process_group()
     try:
         args = build_parser().parse_args(argv)
+        single_blas_thread()
         return int(args.func(args) or 0)
     except (_UserError, ValueError, OSError, KeyError) as exc:  # FormatError, CheckpointError are ValueErrors
         if os.environ.get("GCN_MATCH_DEBUG"):

@@ -245,7 +245,8 @@ def test_colcon_build_ros2_run_layout(tmp_path, monkeypatch):
 #: Third-party top-level modules of the package -> how package.xml declares them (rosdep key,
 #: or "pip:" for a documented pip dependency without a key).
 _RUNTIME_DEPENDENCIES = {
-    "numpy": "python3-numpy", "cv2": "python3-opencv", "scipy": "python3-scipy", "numba": "python3-numba", "torch": "python3-torch",
+    "numpy": "python3-numpy", "cv2": "python3-opencv", "scipy": "python3-scipy", "numba": "python3-numba",
+    "threadpoolctl": "python3-threadpoolctl", "torch": "python3-torch",
     "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "rosbags": "pip:rosbags",
     "rclpy": "rclpy", "rcl_interfaces": "rcl_interfaces", "std_msgs": "std_msgs", "sensor_msgs": "sensor_msgs",
     "geometry_msgs": "geometry_msgs", "diagnostic_msgs": "diagnostic_msgs",

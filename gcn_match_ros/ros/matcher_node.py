@@ -58,6 +58,7 @@ from ..load_shedding import KeypointBudget
 from ..problem import Problem
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
+from ..threads import single_blas_thread
 from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, trim_frame, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
@@ -171,6 +172,7 @@ class _Matcher:
         self._diagnostics_period = float(p["diagnostics_period"])
 
         t0 = time.perf_counter()
+        single_blas_thread()
         self._solver = create_solver(p["solver"], p["checkpoint"], device)
         # what the stream learns from earlier windows (the rig's two-view models, the landmarks);
         # the worker thread alone solves, in window order, as gcn_match_ros.stream.solve_stream
