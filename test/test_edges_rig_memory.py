@@ -7,7 +7,7 @@ import numpy as np
 
 from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
-from gcn_match_ros.edges.rig_memory import RigMemory
+from gcn_match_ros.edges.rig_memory import MAX_SKIPPED, RigMemory
 from gcn_match_ros.edges.verify import fit_pair, residuals
 from gcn_match_ros import geometry
 from gcn_match_ros.stream import StreamState, solve_stream
@@ -63,13 +63,39 @@ def test_a_model_whose_geometry_changed_is_refitted_every_time():
         assert residuals(model, w.xa[10:], w.xb[10:])[0].max() < 2.0  # the new geometry, not the old
 
 
-def test_an_untrusted_fit_is_not_remembered():
+def test_an_untrusted_fit_is_not_remembered_and_backs_off():
     rng = np.random.default_rng(2)
     rig = RigMemory()
     xa, xb = rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2))  # no geometry at all
     fit = _CountingFit(xa, xb)
-    assert rig.model(("a", "b"), xa, xb, fit) is None and len(rig) == 0
-    assert rig.model(("a", "b"), xa, xb, fit) is None and fit.calls == 2
+    fitted_at = []
+    for window in range(20):
+        before = fit.calls
+        assert rig.model(("a", "b"), xa, xb, fit) is None and len(rig) == 0
+        if fit.calls > before:
+            fitted_at.append(window)
+    # after k failures in a row the pair skips 2^k - 1 windows, at most MAX_SKIPPED
+    assert fitted_at == [0, 2, 6, 14]
+    assert rig.fitted == 4 and rig.skipped == 16
+    # the pair comes to overlap: found again at its next fit, and its back-off is over
+    good = _CountingFit(*_seeds(H_A, rng))
+    found = [rig.model(("a", "b"), good.xa, good.xb, good) is not None for _ in range(MAX_SKIPPED + 1)]
+    assert found.index(True) <= MAX_SKIPPED and all(found[found.index(True):]) and good.calls == 1
+    # other camera pairs are not held back
+    other = _CountingFit(*_seeds(H_A, rng))
+    assert rig.model(("a", "c"), other.xa, other.xb, other) is not None and other.calls == 1
+
+
+def test_a_pair_whose_model_fails_is_refitted_at_once():
+    """Back-off is for pairs without a model: a remembered model that fails its re-check is
+    re-fitted in the same window (never matched with the stale one)."""
+    rng = np.random.default_rng(5)
+    rig = RigMemory()
+    w0 = _CountingFit(*_seeds(H_A, rng))
+    rig.model(("a", "b"), w0.xa, w0.xb, w0)
+    xa, xb = rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2))
+    lost = _CountingFit(xa, xb)
+    assert rig.model(("a", "b"), xa, xb, lost) is None and lost.calls == 1 and rig.invalidated == 1
 
 
 def test_a_stream_reuses_models_and_answers_as_solve_stream():
@@ -79,7 +105,9 @@ def test_a_stream_reuses_models_and_answers_as_solve_stream():
     state = StreamState()
     online = [solver.solve(w, stream=state) for w in windows]  # the node: one window at a time
     trusted = len(state.rig)  # view pairs with a trusted model: fitted once, then reused
-    assert trusted >= 2 and state.rig.reused == 2 * trusted and state.rig.fitted == 3 + 2 * (3 - trusted)
+    assert trusted >= 2 and state.rig.reused == 2 * trusted
+    # a pair without one: fitted in windows 0 and 2, skipped in window 1 (back-off)
+    assert state.rig.fitted == 3 + (3 - trusted) and state.rig.skipped == 3 - trusted
     offline = [r for r, _ in solve_stream(solvers.create("gcn"), windows, stamps_ns=range(3))]
     for a, b in zip(online, offline):
         np.testing.assert_array_equal(a.track, b.track)

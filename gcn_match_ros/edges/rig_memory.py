@@ -9,6 +9,13 @@ share it had when fitted. Otherwise it is dropped and the pair re-fitted, so a c
 whose geometry changes (cameras on different robots, a rig knocked out of alignment) is
 re-fitted in every window and never matched with a stale model.
 
+A camera pair whose fit gives no trusted model — cameras that point different ways and share
+no scene — backs off: after k failed fits in a row it is not fitted for the next
+min(2ᵏ − 1, :data:`MAX_SKIPPED`) windows (1, 3, 7, 7, ...) and has no model there, as it would
+have after another failed fit. A failed fit runs RANSAC to its last iteration (~27 ms a pair
+on the generated 4-camera rigs, where three of six pairs never overlap: 81 of a window's 200
+ms). A pair that comes to overlap is found again within MAX_SKIPPED + 1 windows.
+
 The memory is per stream (one per matcher node, one per offline replay of a bag:
 :class:`gcn_match_ros.stream.StreamState`), used in window order; a problem without
 ``camera_ids`` (a single file) never touches it.
@@ -21,11 +28,13 @@ import numpy as np
 
 from .verify import MIN_INLIER_RATIO, MIN_INLIERS, PairModel
 
-__all__ = ["RigMemory", "REUSE_SHARE"]
+__all__ = ["RigMemory", "REUSE_SHARE", "MAX_SKIPPED"]
 
 #: A remembered model is reused while its inlier share on the new seeds is at least this
 #: fraction of its share at fitting time (and it is still trusted).
 REUSE_SHARE = 0.8
+#: The most windows a camera pair without a trusted model goes unfitted (module docstring).
+MAX_SKIPPED = 7
 
 CameraPair = Tuple[str, str]
 
@@ -34,15 +43,19 @@ class RigMemory:
     """Trusted two-view models by camera pair, and how often they were reused.
 
     Attributes:
-        reused, fitted, invalidated: counts of model look-ups answered from memory, by a new
-            fit, and of remembered models that failed the re-check (each also a fit).
+        reused, fitted, invalidated, skipped: counts of model look-ups answered from memory, by
+            a new fit, of remembered models that failed the re-check (each also a fit), and of
+            look-ups of a backing-off pair answered with no model and no fit.
     """
 
     def __init__(self) -> None:
         self._models: Dict[CameraPair, Tuple[PairModel, float]] = {}
+        self._failures: Dict[CameraPair, int] = {}  # failed fits in a row
+        self._skips_left: Dict[CameraPair, int] = {}
         self.reused = 0
         self.fitted = 0
         self.invalidated = 0
+        self.skipped = 0
 
     def __len__(self) -> int:
         return len(self._models)
@@ -68,10 +81,18 @@ class RigMemory:
                 return rechecked
             self.invalidated += 1
             del self._models[cameras]
+        elif self._skips_left.get(cameras, 0) > 0:
+            self._skips_left[cameras] -= 1
+            self.skipped += 1
+            return None
         self.fitted += 1
         model = fit()
         if model is None or not model.trusted(min_inliers, min_inlier_ratio):
+            failures = self._failures.get(cameras, 0) + 1
+            self._failures[cameras] = failures
+            self._skips_left[cameras] = min(2 ** failures - 1, MAX_SKIPPED)
             return None
+        self._failures.pop(cameras, None)
         model = model.selected()
         self._models[cameras] = (model, model.inlier_share)
         return model

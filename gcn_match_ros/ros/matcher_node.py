@@ -448,6 +448,7 @@ class _Matcher:
                 extra={"solver": self._method, "rig models reused": str(self._stream.rig.reused),
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),
+                       "rig pairs skipped (backing off)": str(self._stream.rig.skipped),
                        "landmarks live": str(len(self._stream.landmarks)),
                        "landmarks born": str(self._stream.landmarks.born),
                        "keypoint budget": str(self._budget.current),
