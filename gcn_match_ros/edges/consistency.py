@@ -193,7 +193,7 @@ class TrackCheck(MergeTest):
             fwd.append(f); bwd.append(g); planar.append(is_planar); tol.append(t)
             fwd_start.append(n_fwd); bwd_start.append(n_bwd)
             n_fwd += f.shape[0]; n_bwd += g.shape[0]
-        data = (kept, np.int64(n), geometry.view_index.astype(np.int64), geometry._offsets.astype(np.int64),
+        data = (kept, np.int64(n), geometry.view_index.astype(np.int64), geometry.problem.view_offsets.astype(np.int64),
                 geometry.keypoints, geometry.small, geometry.verified, pair,
                 np.array(fwd_start, np.int64), np.array(bwd_start, np.int64), np.concatenate(fwd),
                 np.concatenate(bwd), np.array(planar, bool), np.array(tol, np.float64),
