@@ -209,7 +209,8 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
         max=float(lat.max()) if lat.size else float("nan"),
         compute=float(np.median(comp)) if comp.size else float("nan"),
         throughput=len(stamps) / span, windows_dropped=windows_dropped, frames_dropped=frames_dropped,
-        frames_lost=max(0, frames_sent - frames_in) if diag_end else None)
+        frames_lost=max(0, frames_sent - frames_in) if diag_end else None,
+        budget=diag_end.get("keypoint budget", "?"), degraded=diag_end.get("windows degraded", "?"))
     return result
 
 
@@ -253,14 +254,15 @@ def main(argv=None) -> int:
                   f"{_fmt_drops(r['windows_dropped'])}", flush=True)
     header = ("| cameras | keypoints/view | windows received / sent | partial | latency p50 [ms] | p95 [ms] | "
               "max [ms] | node compute p50 [ms] | throughput [windows/s] | windows dropped by the node | "
-              "frames lost / dropped |\n|---|---|---|---|---|---|---|---|---|---|---|")
+              "frames lost / dropped | keypoint budget at the end / windows degraded |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [header]
     for r in rows:
         lost = "?" if r["frames_lost"] is None else str(r["frames_lost"])
         lines.append(f"| {r['cameras']} | {r['keypoints']} | {r['received']} / {r['sent']} | {r['partial']} | "
                      f"{1e3 * r['p50']:.1f} | {1e3 * r['p95']:.1f} | {1e3 * r['max']:.1f} | "
                      f"{1e3 * r['compute']:.1f} | {r['throughput']:.1f} | {_fmt_drops(r['windows_dropped'])} | "
-                     f"{lost} / {_fmt_drops(r['frames_dropped'])} |")
+                     f"{lost} / {_fmt_drops(r['frames_dropped'])} | {r['budget']} / {r['degraded']} |")
     table = "\n".join(lines)
     goal = [r for r in rows if (r["cameras"], r["keypoints"]) == GOAL[:2]]
     verdict = ""
@@ -282,7 +284,9 @@ publishers and the MatchWindow subscriber reliable, all on this machine; {shm}.
 Latency = window received by the subscriber − newest view stamp. "partial" = windows with fewer views
 than cameras; "windows dropped by the node" = its /diagnostics counters (`superseded`: a newer
 window replaced one waiting for the busy worker; `stale_window`); "frames lost" = frames sent
-but never received by the node (transport), "dropped" = frames it rejected. Timings depend on
+but never received by the node (transport), "dropped" = frames it rejected; "keypoint budget" = the
+keypoints per view the node solved at the end of the run (`degrade_min_keypoints`: lowered while
+windows are superseded), "windows degraded" = windows it solved below `max_keypoints`. Timings depend on
 what else runs: mind the load average above (2 cores shared with other jobs inflate every number).
 
 {table}
