@@ -21,12 +21,11 @@ from typing import Dict, Optional
 
 import numpy as np
 import scipy.sparse as sp
-import torch
 
 from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS, cosine_distance
 from .problem import Problem
-from .similarity import DescriptorSimilarity
+from .similarity import DescriptorSimilarity, most_similar
 
 __all__ = ["GraphConfig", "GRAPH_PRESETS", "CorrespondenceGraph", "build_graph"]
 
@@ -143,28 +142,22 @@ class CorrespondenceGraph:
         return self.rows[keep], self.cols[keep], keep
 
 
-def _top_candidates(sim: torch.Tensor, k: int):
-    """Top-k columns of every row of a similarity block, best first, and the row's
-    second-best similarity (for the ratio test; -1 where the row has a single column).
-
-    Shapes: sim (n, m) -> idx (n, min(k, m)) int64, best (n, min(k, m)), second (n,).
-    """
-    n, m = sim.shape
-    vals, idx = torch.topk(sim, min(max(k, 2), m), dim=1)
-    second = vals[:, 1] if m >= 2 else torch.full((n,), -1.0)
-    kk = min(k, m)
-    return idx[:, :kk].numpy(), vals[:, :kk].numpy(), second.numpy()
-
-
-def _directed_candidates(sim: torch.Tensor, k: int, row_offset: int, col_offset: int):
+def _directed_candidates(best: np.ndarray, idx: np.ndarray, k: int, row_offset: int, col_offset: int):
     """Candidate edges from every row of a similarity block to its top-k columns.
+
+    Args:
+        best, idx: (n_rows, >= min(k, n_cols)) the row's largest similarities and their columns,
+            best first (:func:`gcn_match_ros.similarity.most_similar`); a second column, where
+            the block has one, gives the ratio test (else ratio 1).
 
     Returns (rows, cols, cosine, ratio, rank), each of length n_rows * min(k, n_cols).
     """
-    idx, best, second = _top_candidates(sim, k)
+    n_rows = idx.shape[0]
+    second = best[:, 1] if best.shape[1] >= 2 else np.full(n_rows, -1.0, np.float32)
+    kk = min(k, best.shape[1])
+    best, idx = best[:, :kk], idx[:, :kk]
     ratio = np.where(second[:, None] > -1.0,
                      cosine_distance(best) / np.maximum(cosine_distance(second)[:, None], 1e-12), 1.0)
-    n_rows, kk = idx.shape
     return (np.repeat(np.arange(n_rows, dtype=np.int64) + row_offset, kk),
             idx.ravel() + col_offset,
             best.ravel().astype(np.float32),
@@ -192,10 +185,13 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
         for j in range(i + 1, V):
             if sizes[i] == 0 or sizes[j] == 0:
                 continue
-            sim = similarity.block(i, j, config.normalization)
+            sim = similarity.block(i, j, config.normalization).numpy()
             sim_lo, sim_hi = min(sim_lo, float(sim.min())), max(sim_hi, float(sim.max()))
-            parts.append(_directed_candidates(sim, config.k, offs[i], offs[j]))
-            parts.append(_directed_candidates(sim.T, config.k, offs[j], offs[i]))
+            # k + 1 >= 2 best of each row and column: the candidates and the ratio test's second
+            best_r, idx_r, best_c, idx_c = most_similar(sim, min(max(config.k, 2), sim.shape[1]),
+                                                        min(max(config.k, 2), sim.shape[0]))
+            parts.append(_directed_candidates(best_r, idx_r, config.k, offs[i], offs[j]))
+            parts.append(_directed_candidates(best_c, idx_c, config.k, offs[j], offs[i]))
     if not parts:
         empty_i, empty_f = np.zeros(0, np.int64), np.zeros(0, np.float32)
         return CorrespondenceGraph(offs.copy(), empty_i, empty_i.copy(), empty_f, empty_f.copy(),

@@ -17,13 +17,15 @@ from __future__ import annotations
 import collections
 from typing import Dict, Tuple
 
+import numba
+import numpy as np
 import torch
 
 from .descriptors import NORMALIZATIONS, normalize_descriptors
 from .problem import Problem
 from .timing import stage
 
-__all__ = ["DescriptorSimilarity"]
+__all__ = ["DescriptorSimilarity", "most_similar"]
 
 Key = Tuple[str, int, int]
 
@@ -98,3 +100,50 @@ class DescriptorSimilarity:
     def __repr__(self) -> str:
         return (f"DescriptorSimilarity({len(self._offsets) - 1} views, {len(self._blocks)} blocks cached, "
                 f"{self.computed} computed, {self.recomputed} recomputed)")
+
+
+def most_similar(sim: np.ndarray, k_row: int, k_col: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The ``k_row`` largest entries of every row and the ``k_col`` largest of every column of a
+    similarity block, best first, the lower index first among equal values.
+
+    One compiled pass over the block for both directions: torch.topk cost ~0.2 ms a call even
+    on a 200 x 200 block (an 8-camera window made 168 calls, 33 of its 120 ms) and above k = 7
+    switched to a ~5x slower kernel.
+
+    Args:
+        sim: (n, m) float32, finite.
+        k_row, k_col: at most m and n.
+
+    Returns:
+        row values (n, k_row) float32, row indices (n, k_row) int64, column values (m, k_col),
+        column indices (m, k_col).
+    """
+    n, m = sim.shape
+    if not (0 < k_row <= m and 0 < k_col <= n):
+        raise ValueError(f"most_similar: k_row={k_row}, k_col={k_col} for a {n} x {m} block")
+    return _most_similar(np.asarray(sim, np.float32), int(k_row), int(k_col))
+
+
+@numba.njit(cache=True)
+def _most_similar(sim, k_row, k_col):
+    n, m = sim.shape
+    row_val = np.full((n, k_row), -np.inf, np.float32)
+    row_idx = np.zeros((n, k_row), np.int64)
+    col_val = np.full((m, k_col), -np.inf, np.float32)
+    col_idx = np.zeros((m, k_col), np.int64)
+    for i in range(n):
+        for j in range(m):
+            v = sim[i, j]
+            if v > row_val[i, k_row - 1]:  # insertion into the row's sorted list
+                t = k_row - 1
+                while t > 0 and v > row_val[i, t - 1]:
+                    row_val[i, t], row_idx[i, t] = row_val[i, t - 1], row_idx[i, t - 1]
+                    t -= 1
+                row_val[i, t], row_idx[i, t] = v, j
+            if v > col_val[j, k_col - 1]:
+                t = k_col - 1
+                while t > 0 and v > col_val[j, t - 1]:
+                    col_val[j, t], col_idx[j, t] = col_val[j, t - 1], col_idx[j, t - 1]
+                    t -= 1
+                col_val[j, t], col_idx[j, t] = v, i
+    return row_val, row_idx, col_val, col_idx

@@ -109,17 +109,3 @@ def test_only_trusted_models_give_geometric_features_and_guided_candidates():
     assert g["has_model"].max() == 0.0 and g["guided"].sum() == 0 and np.isinf(strict.res_px).all()
     uncalibrated = candidate_edges(problem, EdgeConfig(essential=False)).models[(0, 1)]
     assert uncalibrated is not None and not uncalibrated.essential
-
-
-def test_top_k_in_rounds_equals_torch_topk():
-    import torch
-
-    from gcn_match_ros.edges.candidates import _top_k
-
-    x = torch.rand(37, 29, generator=torch.Generator().manual_seed(0))
-    for k in (1, 7, 8, 11, 20, 29):
-        v, i = _top_k(x, k)
-        tv, ti = torch.topk(x, k, dim=1)
-        assert torch.equal(v, tv) and torch.equal(i, ti)
-        v, i = _top_k(x.T, min(k, 29))
-        assert torch.equal(v, torch.topk(x.T, min(k, 29), dim=1)[0])

@@ -9,7 +9,7 @@ from gcn_match_ros.data import synthetic
 from gcn_match_ros.descriptors import NORMALIZATIONS, normalize_descriptors
 from gcn_match_ros.edges.candidates import EdgeConfig, candidate_edges
 from gcn_match_ros.graph import GraphConfig, build_graph
-from gcn_match_ros.similarity import DescriptorSimilarity
+from gcn_match_ros.similarity import DescriptorSimilarity, most_similar
 
 from conftest import permuted_views_problem
 
@@ -101,3 +101,18 @@ def test_graph_and_candidates_are_the_same_with_a_shared_similarity():
     build_graph(problem, graph_config, shared)
     candidate_edges(problem, edge_config, shared)
     assert shared.computed == 2 * 3
+
+
+def test_most_similar_equals_a_stable_sort_of_rows_and_columns():
+    rng = np.random.default_rng(0)
+    x = rng.random((37, 29)).astype(np.float32)
+    x[3, [4, 9, 17]] = x[3, 2]  # ties: the lower index first
+    x[[5, 30], 8] = x[1, 8]
+    for k_row, k_col in ((1, 1), (2, 2), (7, 8), (11, 11), (29, 37)):
+        rv, ri, cv, ci = most_similar(x, k_row, k_col)
+        for block, values, indices, k in ((x, rv, ri, k_row), (x.T, cv, ci, k_col)):
+            order = np.argsort(-block, axis=1, kind="stable")[:, :k]
+            np.testing.assert_array_equal(indices, order)
+            np.testing.assert_array_equal(values, np.take_along_axis(block, order, 1))
+    with pytest.raises(ValueError, match="k_row"):
+        most_similar(x, 30, 1)

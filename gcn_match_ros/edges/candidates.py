@@ -36,7 +36,7 @@ from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
-from ..similarity import DescriptorSimilarity
+from ..similarity import DescriptorSimilarity, most_similar
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import EPIPOLAR_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
@@ -180,25 +180,6 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
     return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf, models)
 
 
-#: torch.topk on CPU switches to a ~5x slower kernel above this k (torch 2.13: 0.2 vs 1.1 ms
-#: for 500 x 500); larger k are taken in rounds of at most this many.
-_TOPK_FAST = 7
-
-
-def _top_k(x: torch.Tensor, k: int) -> Tuple[torch.Tensor, torch.Tensor]:
-    """``torch.topk(x, k, dim=1)`` (values, indices, best first) in rounds of :data:`_TOPK_FAST`.
-
-    Shapes: x (n, m), k <= m -> (n, k), (n, k).
-    """
-    if k <= _TOPK_FAST:
-        return torch.topk(x, k, dim=1)
-    v1, i1 = torch.topk(x, _TOPK_FAST, dim=1)
-    rest = x.clone()
-    rest.scatter_(1, i1, float("-inf"))
-    v2, i2 = _top_k(rest, k - _TOPK_FAST)
-    return torch.cat([v1, v2], 1), torch.cat([i1, i2], 1)
-
-
 def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig,
                 K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
                 rig: Optional[RigMemory] = None, cameras: Optional[Tuple[str, str]] = None
@@ -211,9 +192,7 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
     k = min(config.k, na, nb)
     # The RANK_CAP + 1 best similarities of every row and column, best first: the
     # candidates, the ratio test and the (capped) ranks all read from them.
-    top_r, ir = _top_k(sim_t, min(RANK_CAP + 1, nb))
-    top_c, ic = _top_k(sim_t.T, min(RANK_CAP + 1, na))
-    top_r, ir, top_c, ic = top_r.numpy(), ir.numpy(), top_c.numpy(), ic.numpy()
+    top_r, ir, top_c, ic = most_similar(sim, min(RANK_CAP + 1, nb), min(RANK_CAP + 1, na))
     best_r, sec_r = top_r[:, 0], top_r[:, 1]
     best_c, sec_c = top_c[:, 0], top_c[:, 1]
     nn_r, nn_c = ir[:, 0], ic[:, 0]
