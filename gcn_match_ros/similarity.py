@@ -106,9 +106,10 @@ def most_similar(sim: np.ndarray, k_row: int, k_col: int) -> Tuple[np.ndarray, n
     """The ``k_row`` largest entries of every row and the ``k_col`` largest of every column of a
     similarity block, best first, the lower index first among equal values.
 
-    One compiled pass over the block for both directions: torch.topk cost ~0.2 ms a call even
-    on a 200 x 200 block (an 8-camera window made 168 calls, 33 of its 120 ms) and above k = 7
-    switched to a ~5x slower kernel.
+    One compiled pass over the block for both directions, on the calling thread: inside a
+    window's solve torch.topk cost ~0.2 ms a call even on a 200 x 200 block (its thread pool
+    wakes for every call; an 8-camera window made 168 calls, 33 of its 120 ms), and above k = 7
+    it switches to a ~5x slower kernel.
 
     Args:
         sim: (n, m) float32, finite.
@@ -131,19 +132,27 @@ def _most_similar(sim, k_row, k_col):
     row_idx = np.zeros((n, k_row), np.int64)
     col_val = np.full((m, k_col), -np.inf, np.float32)
     col_idx = np.zeros((m, k_col), np.int64)
+    col_floor = np.full(m, -np.inf, np.float32)  # each column's k-th best so far, contiguous
     for i in range(n):
+        row_floor = np.float32(-np.inf)
         for j in range(m):
             v = sim[i, j]
-            if v > row_val[i, k_row - 1]:  # insertion into the row's sorted list
+            if v > row_floor:  # insertion into the row's sorted list
                 t = k_row - 1
                 while t > 0 and v > row_val[i, t - 1]:
-                    row_val[i, t], row_idx[i, t] = row_val[i, t - 1], row_idx[i, t - 1]
+                    row_val[i, t] = row_val[i, t - 1]
+                    row_idx[i, t] = row_idx[i, t - 1]
                     t -= 1
-                row_val[i, t], row_idx[i, t] = v, j
-            if v > col_val[j, k_col - 1]:
+                row_val[i, t] = v
+                row_idx[i, t] = j
+                row_floor = row_val[i, k_row - 1]
+            if v > col_floor[j]:
                 t = k_col - 1
                 while t > 0 and v > col_val[j, t - 1]:
-                    col_val[j, t], col_idx[j, t] = col_val[j, t - 1], col_idx[j, t - 1]
+                    col_val[j, t] = col_val[j, t - 1]
+                    col_idx[j, t] = col_idx[j, t - 1]
                     t -= 1
-                col_val[j, t], col_idx[j, t] = v, i
+                col_val[j, t] = v
+                col_idx[j, t] = i
+                col_floor[j] = col_val[j, k_col - 1]
     return row_val, row_idx, col_val, col_idx
