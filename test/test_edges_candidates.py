@@ -109,3 +109,26 @@ def test_only_trusted_models_give_geometric_features_and_guided_candidates():
     assert g["has_model"].max() == 0.0 and g["guided"].sum() == 0 and np.isinf(strict.res_px).all()
     uncalibrated = candidate_edges(problem, EdgeConfig(essential=False)).models[(0, 1)]
     assert uncalibrated is not None and not uncalibrated.essential
+
+
+def test_epipolar_guided_candidates_follow_the_dense_rule():
+    """The compiled pass gives, per keypoint, the most similar keypoint of the other view within
+    px of both epipolar lines — what the distance matrix and a masked argmax give."""
+    from gcn_match_ros.edges.candidates import _best_near_lines
+    from gcn_match_ros.geometry import epipolar_distance_matrix, homogeneous
+
+    rng = np.random.default_rng(7)
+    F = np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]])
+    xa, xb = rng.uniform(0, 640, (60, 2)), rng.uniform(0, 640, (70, 2))
+    sim = rng.random((60, 70)).astype(np.float32)
+    sim[:, 5] = sim[:, 6]  # ties: the first keypoint, as argmax
+    found = []
+    for px in (3.0, 40.0, 200.0):
+        j, i = _best_near_lines(sim, homogeneous(xa) @ F.T, homogeneous(xb) @ F, xa, xb, px)
+        found.append(int((j >= 0).sum()))
+        masked = np.where(epipolar_distance_matrix(F, xa, xb) < px, sim, -np.inf)
+        want_j = np.where(np.isfinite(masked.max(1)), masked.argmax(1), -1)
+        want_i = np.where(np.isfinite(masked.max(0)), masked.argmax(0), -1)
+        np.testing.assert_array_equal(j, want_j)
+        np.testing.assert_array_equal(i, want_i)
+    assert 0 < found[0] < 60 and found[0] <= found[1] <= found[2]  # the tolerance matters
