@@ -137,22 +137,22 @@ def _most_similar(sim, k_row, k_col):
         row_floor = np.float32(-np.inf)
         for j in range(m):
             v = sim[i, j]
-            if v > row_floor:  # insertion into the row's sorted list
-                t = k_row - 1
-                while t > 0 and v > row_val[i, t - 1]:
-                    row_val[i, t] = row_val[i, t - 1]
-                    row_idx[i, t] = row_idx[i, t - 1]
-                    t -= 1
-                row_val[i, t] = v
-                row_idx[i, t] = j
-                row_floor = row_val[i, k_row - 1]
+            if v > row_floor:
+                row_floor = _insert(row_val[i], row_idx[i], v, j)
             if v > col_floor[j]:
-                t = k_col - 1
-                while t > 0 and v > col_val[j, t - 1]:
-                    col_val[j, t] = col_val[j, t - 1]
-                    col_idx[j, t] = col_idx[j, t - 1]
-                    t -= 1
-                col_val[j, t] = v
-                col_idx[j, t] = i
-                col_floor[j] = col_val[j, k_col - 1]
+                col_floor[j] = _insert(col_val[j], col_idx[j], v, i)
     return row_val, row_idx, col_val, col_idx
+
+
+@numba.njit(cache=True, inline="always")
+def _insert(values, indices, v, at):
+    """Insert ``v`` (from position ``at``) into the descending list ``values`` / ``indices``,
+    after any equal values; the last entry falls out. Returns the new last value."""
+    t = values.shape[0] - 1
+    while t > 0 and v > values[t - 1]:
+        values[t] = values[t - 1]
+        indices[t] = indices[t - 1]
+        t -= 1
+    values[t] = v
+    indices[t] = at
+    return values[values.shape[0] - 1]
