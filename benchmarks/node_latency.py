@@ -21,6 +21,8 @@ Usage::
 
     ./run.sh python benchmarks/node_latency.py                      # default solver (gcn if its model exists)
     ./run.sh python benchmarks/node_latency.py --solver nn --cameras 4 --keypoints 500 --duration 20
+    # the cost of the landmarks' temporal association: the same without it
+    ./run.sh python benchmarks/node_latency.py --landmarks false --out benchmarks/results/node_latency_no_landmarks.md
 """
 from __future__ import annotations
 
@@ -56,6 +58,8 @@ def _parser():
                    help="the node's input_qos parameter (default: the node's default)")
     p.add_argument("--default-shm", action="store_true",
                    help="keep Fast DDS's default 512 KiB shared-memory segment (no gcn_match_ros profile)")
+    p.add_argument("--landmarks", default="true", choices=("true", "false"),
+                   help="the node's landmarks parameter (false: no temporal association, to measure its cost)")
     p.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "node_latency.md")
     return p
@@ -112,6 +116,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args", "-r", f"__ns:={ns}",
            "-p", f"cameras:=[{','.join(cams)}]", "-p", f"solver:={solver}", "-p", f"input_qos:={args.input_qos}",
            "-p", f"max_keypoints:={max(n_kp, 1024)}", "-p", "diagnostics_period:=0.5",
+           "-p", f"landmarks:={args.landmarks}",
            "--log-level", "warn"]
     log = tempfile.NamedTemporaryFile("w+", prefix="node_latency-", suffix=".log", delete=False)
     node_proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
@@ -277,7 +282,8 @@ def main(argv=None) -> int:
     doc = "\n".join(header) + f"""
 Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
 
-Solver `{solver}`{note}; every camera publishes one Keypoints frame per capture at {args.rate:g} Hz
+Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}; every camera publishes one
+Keypoints frame per capture at {args.rate:g} Hz
 (all stamped with the capture time; synthetic SIFT-like 128-D descriptors), {args.duration:g} s measured after
 {args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,
 publishers and the MatchWindow subscriber reliable, all on this machine; {shm}.

@@ -54,15 +54,20 @@ class WindowLandmarks:
         return np.where(self.ids >= 0, self.ages_ns * 1e-9, -1.0)
 
 
-def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int) -> Tuple[Result, WindowLandmarks]:
+def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
+                 landmarks: bool = True) -> Tuple[Result, Optional[WindowLandmarks]]:
     """Solve one window of a stream (rig memory) and give its keypoints their landmarks.
 
     Args:
         solver: a :class:`gcn_match_ros.solvers.base.Solver`.
         stamp_ns: the window's capture time (its newest view stamp), for landmark ages and
             retirement. A problem without ``camera_ids`` gets no landmarks (all -1).
+        landmarks: False: no association at all (None instead of the landmarks; the tracker
+            is not touched), for consumers that need only the window's own tracks.
     """
     result = solver.solve(problem, stream=state)
+    if not landmarks:
+        return result, None
     if problem.camera_ids is None:
         none = np.full(problem.n_keypoints, -1, np.int64)
         return result, WindowLandmarks(none, none.copy())

@@ -10,7 +10,7 @@ from gcn_match_ros.data import synthetic
 from gcn_match_ros.edges.rig_memory import MAX_SKIPPED, RigMemory
 from gcn_match_ros.edges.verify import fit_pair, residuals
 from gcn_match_ros import geometry
-from gcn_match_ros.stream import StreamState, solve_stream
+from gcn_match_ros.stream import StreamState, solve_stream, solve_window
 
 H_A = np.array([[1.1, 0.05, 12.0], [-0.03, 0.95, -7.0], [2e-4, -1e-4, 1.0]])
 H_B = np.array([[0.9, -0.2, 40.0], [0.15, 1.05, 30.0], [-1e-4, 2e-4, 1.0]])
@@ -130,3 +130,16 @@ def test_reused_models_match_as_well_as_fresh_fits():
     warm = solver.solve(window, stream=state)
     assert state.rig.reused == len(state.rig) >= 2
     np.testing.assert_array_equal(cold.track, warm.track)
+
+
+def test_a_stream_without_landmarks_solves_alike_and_leaves_the_tracker_alone():
+    base = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=120), rng=np.random.default_rng(4))
+    window = dataclasses.replace(base, camera_ids=("c0", "c1", "c2"))
+    with_ids, without = StreamState(), StreamState()
+    solver = solvers.create("nn")
+    for k in range(2):
+        a, ids = solve_window(solver, window, with_ids, k)
+        b, none = solve_window(solver, window, without, k, landmarks=False)
+        np.testing.assert_array_equal(a.track, b.track)
+        assert none is None and (ids.ids >= 0).any()
+    assert len(with_ids.landmarks) > 0 and len(without.landmarks) == 0 and without.landmarks.born == 0

@@ -226,6 +226,23 @@ def test_matcher_windows_score_high_against_ground_truth(harness_factory, solver
     assert float(values["latency p95 [ms]"]) > 0 and values["frames received cam2"] == str(n_windows)
 
 
+def test_matcher_without_landmarks_publishes_tracks_and_no_ids(harness_factory):
+    """landmarks:=false: the same windows, tracks as before, the landmark fields left empty
+    and the tracker never used."""
+    h = harness_factory(solver="nn", landmarks=False)
+    scene = PermutedScene(points=60, dim=128, noise=0.05, distractors=5, seed=7)
+    for k in range(2):
+        t0 = time.time()
+        for i, cam in enumerate(CAMS):
+            h.publish(scene.frame(cam, t0 - 0.002 * i)[0])
+        h.wait_windows(k + 1)
+    for m in h.windows:
+        validate_match_window(m)
+        assert m.track_count > 30 and len(m.landmark_ids) == 0 and len(m.landmark_ages) == 0
+    _, values = h.wait_diag(lambda v: v.get("windows published") == "2")
+    assert values["landmarks live"] == "0" and values["landmarks born"] == "0"
+
+
 def test_matcher_counts_bad_input_and_keeps_running(harness_factory):
     h = harness_factory(solver="nn", max_keypoints=200)
     scene = PermutedScene(points=40, dim=128, seed=11)

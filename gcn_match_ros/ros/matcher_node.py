@@ -168,6 +168,7 @@ class _Matcher:
                 raise StartupError(f"camera id '{cam}' does not make a valid topic name: {exc}") from None
         self._score_threshold = float(p["score_threshold"])
         self._dense_output = bool(p["dense_output"])
+        self._landmarks = bool(p["landmarks"])
         self._input_qos = p["input_qos"]
         self._diagnostics_period = float(p["diagnostics_period"])
 
@@ -407,7 +408,7 @@ class _Matcher:
             return
         stacked = time.perf_counter() - t0
         try:
-            result, landmarks = solve_window(self._solver, problem, self._stream, newest)
+            result, landmarks = solve_window(self._solver, problem, self._stream, newest, self._landmarks)
         except Exception as exc:
             self._drop_window("solver_error")
             self.get_logger().error(f"solver {self._method} failed on a window of {problem.n_views} views, "
@@ -418,8 +419,9 @@ class _Matcher:
         try:
             msg = result_to_match_window(frames, result, score_threshold=threshold, dense=dense,
                                          build_seconds=build, solve_seconds=stacked + result.seconds - build,
-                                         method=result.method or self._method, landmark_ids=landmarks.ids,
-                                         landmark_ages=landmarks.ages_s)
+                                         method=result.method or self._method,
+                                         landmark_ids=None if landmarks is None else landmarks.ids,
+                                         landmark_ages=None if landmarks is None else landmarks.ages_s)
             validate_match_window(msg)
         except MatchWindowError as exc:
             self._drop_window("invalid_output")

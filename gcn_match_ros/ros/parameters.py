@@ -75,6 +75,9 @@ MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
     ParameterSpec("input_qos", "sensor_data", "QoS of the keypoint subscriptions: sensor_data (best effort, "
                                               "depth 5) or reliable (depth 10).", read_only=True,
                   constraints=" | ".join(INPUT_QOS)),
+    ParameterSpec("landmarks", True, "Give every keypoint its persistent landmark id (MatchWindow.landmark_*); "
+                                     "false: only the window's own tracks, without the association's cost.",
+                  read_only=True),
     ParameterSpec("degrade_min_keypoints", 200, "Under load (windows superseded) solve fewer keypoints per view, "
                                                 "the best-scored, down to this many, rather than only drop windows; "
                                                 "back up when the worker keeps up; 0: never.", read_only=True,
