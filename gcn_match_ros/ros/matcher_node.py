@@ -54,6 +54,7 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 from .. import solvers
 from ..bags.codec import frame_from_keypoints_msg
 from ..descriptors import describe_descriptor_kind
+from ..geometry import project
 from ..load_shedding import KeypointBudget
 from ..problem import Problem
 from ..stamps import ns_to_seconds
@@ -103,19 +104,25 @@ def create_solver(spec: str, checkpoint: str = "", device: str = "cpu") -> solve
                            + f": {type(exc).__name__}: {exc}") from None
 
 
-def _warmup_problem(dim: int, binary: bool = False, views: int = 3, points: int = 40, seed: int = 0) -> Problem:
-    """Small permuted-views problem (views see the same points in random order); binary:
-    0/1 descriptors with a few flipped bits per view."""
+def _warmup_problem(dim: int, binary: bool = False, views: int = 3, points: int = 60, seed: int = 0) -> Problem:
+    """Small permuted-views problem: views of one rigid 3-D point set (cameras a little apart,
+    so every view pair has a trusted non-planar model and the geometric paths run), each in its
+    own random order; binary: 0/1 descriptors with a few flipped bits per view."""
     rng = np.random.default_rng(seed)
     base = rng.integers(0, 2, size=(points, dim)) if binary else np.abs(rng.normal(size=(points, dim)))
+    X = rng.uniform([-2.0, -1.5, 4.0], [2.0, 1.5, 8.0], size=(points, 3))
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
     kps, desc = [], []
-    for _ in range(views):
+    for v in range(views):
+        yaw = 0.05 * v
+        R = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0], [-np.sin(yaw), 0.0, np.cos(yaw)]])
+        uv, _ = project(K, R, np.array([-0.3 * v, 0.0, 0.0]), X)
         perm = rng.permutation(points)
         if binary:
             desc.append((base[perm] ^ (rng.random((points, dim)) < 0.03)).astype(np.float32))
         else:
             desc.append(base[perm] + 0.05 * rng.normal(size=(points, dim)))
-        kps.append(rng.uniform(0, 640, size=(points, 2)))
+        kps.append(uv[perm])
     return Problem(view_offsets=np.arange(views + 1) * points, keypoints=np.concatenate(kps),
                    descriptors=np.concatenate(desc))
 
@@ -256,13 +263,17 @@ class _Matcher:
         return dim or (self._solver_dims[0] if len(self._solver_dims) == 1 else 0)
 
     def _warm_up(self, dim: int) -> str:
-        """One solve on a small problem: first-call costs leave the first real window, and a
-        solver that cannot run at all is found at start-up."""
+        """Two windows of a small stream, on a throwaway stream state: first-call costs (model
+        loads, compiled loops where numba cannot cache them) leave the first real windows, and
+        a solver that cannot run at all is found at start-up."""
         t = time.perf_counter()
         kinds = [k for k in self._solver_kinds if not dim or k[0] == dim] or [(dim or 128, False)]
         for d, binary in kinds:  # every model loads at start-up
             try:
-                self._solver.solve(_warmup_problem(d, binary))
+                problem, state = _warmup_problem(d, binary), StreamState()
+                problem.camera_ids = tuple(f"warm-up{v}" for v in range(problem.n_views))
+                for k in range(2):  # the second window also associates landmarks
+                    solve_window(self._solver, problem, state, k * 100_000_000)
             except Exception as exc:
                 raise StartupError(f"solver {self._method} fails on a {d}-D warm-up window: "
                                    f"{type(exc).__name__}: {exc}") from None
