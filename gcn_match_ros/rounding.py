@@ -72,7 +72,7 @@ def _merge_greedily(n, view, rows, cols, n_views, test, data):
     """Union-find over the pairs in order; two tracks merge when they share no view and
     ``test`` accepts them. Returns (n,) each keypoint's root. Compiled: the merge loop runs
     over every scored pair of a window (10⁴–10⁵). Not cached: numba cannot cache a function
-    taking another (~0.5 s to compile once per process and test)."""
+    taking another (~1 s to compile once per process and test; the node's warm-up takes it)."""
     parent = np.arange(n)
     # each root's members as a linked list: first, next, last, count
     first, nxt, last = np.arange(n), np.full(n, -1), np.arange(n)
