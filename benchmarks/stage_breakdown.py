@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gcn_match_ros import solvers
+from gcn_match_ros import plots, solvers
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 from gcn_match_ros.experiments import results_header
 from gcn_match_ros.stream import StreamState
@@ -102,12 +102,20 @@ def main(argv=None) -> int:
                      f"{1e3 * r['total']:.1f} | {r['ratio']:.1f} | {r['rss_growth']:.0f} |")
     table = "\n".join(lines)
     print(table)
+    windows = {}
+    for r in rows:
+        stages = {name: 1e3 * r["stages"][name] for name in STAGES}
+        stages["other"] = max(0.0, 1e3 * r["total"] - sum(stages.values()))
+        windows.setdefault(f"{r['views']} x {r['keypoints'] // r['views']}", {})[r["spec"]] = stages
+    figure = plots.plot_stage_times(windows, args.out.with_suffix(".png"),
+                                    title="Where one window's time goes (offline, median; 'other': outside the stages)")
     gpu = [f"GPU: {torch.cuda.get_device_name()}"] if torch.cuda.is_available() else []
     header = results_header("Per-stage time of one window (offline)", __file__,
                             sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
                             machine_extra=gpu, env=("OPENBLAS_NUM_THREADS=1",))
     text = ("\n".join(header) + f"\n\nMedian of {args.repeats} solves after one warm-up; stages in ms, exclusive of nested "
-              "stages (gcn_match_ros.timing); windows: synthetic.rome16k, SIFT-like descriptors.\n\n"
+              "stages (gcn_match_ros.timing); windows: synthetic.rome16k, SIFT-like descriptors. "
+              f"Figure: {figure.name}.\n\n"
             + table + "\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a" if args.append else "w") as f:

@@ -223,6 +223,44 @@ def plot_reliability(thresholds: Sequence[float], shares: Mapping[str, Sequence[
     return _save(fig, path, dpi=120)
 
 
+def plot_stage_times(windows: Mapping[str, Mapping[str, Mapping[str, float]]], path, title: str = "") -> Path:
+    """Where each window's time goes, to a PNG: one panel per window size (its own linear
+    scale), one horizontal bar per solver, split into its stages.
+
+    Args:
+        windows: window label (e.g. "4 x 500") -> bar label (e.g. "gcn (stream)") -> stage ->
+            milliseconds, stages in drawing order (the same names in every bar).
+    """
+    plt = _plt()
+    n_bars = max(len(bars) for bars in windows.values())
+    height = (0.4 * n_bars + 0.9) * len(windows) + 1.0
+    fig, axes = plt.subplots(len(windows), 1, figsize=(9, height), squeeze=False)
+    colors = {}
+    for ax, (window, bars) in zip(axes[:, 0], windows.items()):
+        y = np.arange(len(bars))[::-1]
+        left = np.zeros(len(bars))
+        stage_names = list(next(iter(bars.values())))
+        for name in stage_names:
+            ms = np.array([bar.get(name, 0.0) for bar in bars.values()], float)
+            bars_drawn = ax.barh(y, ms, left=left, height=0.7, color=colors.get(name),
+                                 label=name if name not in colors else None)
+            colors.setdefault(name, bars_drawn.patches[0].get_facecolor())
+            left += ms
+        for yi, total in zip(y, left):
+            ax.text(total, yi, f" {total:.0f} ms", va="center", fontsize=8)
+        ax.set_yticks(y)
+        ax.set_yticklabels(list(bars), fontsize=8)
+        ax.set_xlim(0, 1.15 * left.max())
+        ax.set_title(window, fontsize=9, loc="left")
+        ax.grid(alpha=0.3, axis="x")
+    axes[-1, 0].set_xlabel("milliseconds per window (stages stacked)")
+    if title:
+        fig.suptitle(title, fontsize=10, y=1 - 0.1 / height, va="top")
+    fig.legend(fontsize=7, ncol=9, loc="upper center", bbox_to_anchor=(0.5, 1 - 0.4 / height))
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.8 / height))
+    return _save(fig, path, dpi=120)
+
+
 def plot_landmark_map(points: np.ndarray, lifetimes: np.ndarray, camera_centers: np.ndarray, path,
                       title: str = "") -> Path:
     """Landmarks and the camera path from above, and the landmarks' lifetimes, to a PNG.

@@ -184,3 +184,10 @@ def test_cross_view_similarities_known_answer():
         plots.cross_view_similarities(E, dataclasses.replace(problem, gt_track=None))
     empty_same, empty_diff = plots.cross_view_similarities(E[:3], crafted_problem([[0, 1, -2]]))
     assert empty_same.size == 0 and empty_diff.size == 0  # one view: no cross-view pairs
+
+
+def test_plot_stage_times(tmp_path):
+    windows = {"4 x 500": {"nn": {"similarity": 3.0, "graph": 4.0, "network": 0.0},
+                           "gcn (stream)": {"similarity": 6.0, "graph": 9.0, "network": 6.0}},
+               "8 x 500": {"nn": {"similarity": 12.0, "graph": 16.0, "network": 0.0}}}
+    assert_png(plots.plot_stage_times(windows, tmp_path / "stages.png", title="per stage"))
