@@ -40,7 +40,6 @@ import threading
 import time
 from typing import List, Optional, Tuple
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
@@ -53,8 +52,8 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from .. import solvers
 from ..bags.codec import frame_from_keypoints_msg
+from ..data import synthetic
 from ..descriptors import describe_descriptor_kind
-from ..geometry import project
 from ..load_shedding import KeypointBudget
 from ..problem import Problem
 from ..stamps import ns_to_seconds
@@ -104,27 +103,12 @@ def create_solver(spec: str, checkpoint: str = "", device: str = "cpu") -> solve
                            + f": {type(exc).__name__}: {exc}") from None
 
 
-def _warmup_problem(dim: int, binary: bool = False, views: int = 3, points: int = 60, seed: int = 0) -> Problem:
-    """Small permuted-views problem: views of one rigid 3-D point set (cameras a little apart,
-    so every view pair has a trusted non-planar model and the geometric paths run), each in its
-    own random order; binary: 0/1 descriptors with a few flipped bits per view."""
-    rng = np.random.default_rng(seed)
-    base = rng.integers(0, 2, size=(points, dim)) if binary else np.abs(rng.normal(size=(points, dim)))
-    X = rng.uniform([-2.0, -1.5, 4.0], [2.0, 1.5, 8.0], size=(points, 3))
-    K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
-    kps, desc = [], []
-    for v in range(views):
-        yaw = 0.05 * v
-        R = np.array([[np.cos(yaw), 0.0, np.sin(yaw)], [0.0, 1.0, 0.0], [-np.sin(yaw), 0.0, np.cos(yaw)]])
-        uv, _ = project(K, R, np.array([-0.3 * v, 0.0, 0.0]), X)
-        perm = rng.permutation(points)
-        if binary:
-            desc.append((base[perm] ^ (rng.random((points, dim)) < 0.03)).astype(np.float32))
-        else:
-            desc.append(base[perm] + 0.05 * rng.normal(size=(points, dim)))
-        kps.append(uv[perm])
-    return Problem(view_offsets=np.arange(views + 1) * points, keypoints=np.concatenate(kps),
-                   descriptors=np.concatenate(desc))
+def _warmup_problem(dim: int, binary: bool = False) -> Problem:
+    """Three views of a small synthetic 3-D scene (:func:`gcn_match_ros.data.synthetic.easy`:
+    every view pair has a trusted non-planar model, so the geometric paths run), with ``dim``
+    descriptors of the kind to warm up (binary: 0/1 bits)."""
+    config = synthetic.easy(3, descriptor_kind="binary" if binary else "sift", descriptor_dim=dim, n_points=60)
+    return synthetic.random_scene_problem(config, rng=0)
 
 
 @dataclasses.dataclass
