@@ -131,9 +131,7 @@ class WindowGeometry:
                 fwd, bwd = transfer(model.H, xa), transfer(np.linalg.inv(model.H), xb)
             except np.linalg.LinAlgError:  # no pair agrees with a singular H (as verify.residuals)
                 fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
-            pad = np.zeros((1, 1))
-            return (np.hstack([fwd, np.broadcast_to(pad, (fwd.shape[0], 1))]),
-                    np.hstack([bwd, np.broadcast_to(pad, (bwd.shape[0], 1))]), True, model.px)
+            return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, model.px
         return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
 
     def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
