@@ -21,8 +21,9 @@ Usage::
 
     ./run.sh python benchmarks/node_latency.py                      # default solver (gcn if its model exists)
     ./run.sh python benchmarks/node_latency.py --solver nn --cameras 4 --keypoints 500 --duration 20
-    # the cost of the landmarks' temporal association: the same without it
-    ./run.sh python benchmarks/node_latency.py --landmarks false --out benchmarks/results/node_latency_no_landmarks.md
+    # the cost of the landmarks' temporal association: the same without it, against the default
+    # (benchmarks/results/node_latency_landmarks.md holds both tables and their ratio)
+    ./run.sh python benchmarks/node_latency.py --landmarks false --cameras 2 4 --out /tmp/no_landmarks.md
 """
 from __future__ import annotations
 
