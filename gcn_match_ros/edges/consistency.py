@@ -22,6 +22,13 @@ members joined only through a third were never matched directly: their pair carr
 localisation error of two links, so it is checked at :data:`CHAIN_SLACK` x the model's
 tolerance (at 1x, Oxford graf lost a quarter of its true 4-view tracks).
 
+**Rotation cycles.** A trusted model can still be wrong: on a repetitive facade an essential
+matrix explains the matches shifted by one window as well as the right ones. With known
+intrinsics the window's other views expose it: a model that closes none of the rotation cycles
+it is in can be dropped before anything is checked (:mod:`.rotation_cycles`; a solver setting,
+off by default: a small object's rotations are too uncertain for the test), and its view pair
+is then unverified.
+
 **Chained models.** A view pair whose descriptor seeds gave no trusted model can still be
 linked by tracks through views verified against both: views 0 and 2 of a wide-baseline
 sequence, each verified against view 1. Refusing every such chain cost ORB on castle-P19 a
@@ -40,9 +47,10 @@ from typing import Dict, List, Optional, Tuple
 import numba
 import numpy as np
 
-from ..geometry import homogeneous, transfer
+from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
+from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
 from .verify import MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair
 
 __all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
@@ -115,6 +123,42 @@ class WindowGeometry:
         if len(models) == len(self.models):
             return self
         return WindowGeometry(self.problem, models, self.unverified_threshold)
+
+    def with_closed_rotation_cycles(self, rows: np.ndarray, cols: np.ndarray) -> "WindowGeometry":
+        """This geometry without the essential-matrix models that close none of the rotation
+        cycles they are in (:mod:`.rotation_cycles`); each model's rotation is chosen by the
+        pairs among ``rows``, ``cols`` that agree with it, and tested with at least
+        :data:`.rotation_cycles.MIN_ROTATION_PAIRS` of them. ``self`` when none is dropped or the
+        views are uncalibrated.
+
+        Shapes: rows, cols (M,) keypoint indices of different views.
+        """
+        K = self.problem.K
+        if K is None:
+            return self
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        va, vb = self.view_index[rows], self.view_index[cols]
+        swap = va > vb
+        rows, cols = np.where(swap, cols, rows), np.where(swap, rows, cols)
+        va, vb = np.minimum(va, vb), np.maximum(va, vb)
+        rotations = {}
+        for (a, b), model in self.models.items():
+            if model.planar or not model.essential:
+                continue
+            m = (va == a) & (vb == b)
+            xa, xb = self.keypoints[rows[m]], self.keypoints[cols[m]]
+            ok = model.agrees(xa, xb)
+            if ok.sum() < MIN_ROTATION_PAIRS:
+                continue
+            R = relative_rotation(K[b].T @ model.F @ K[a], unproject(K[a], xa[ok])[:, :2],
+                                  unproject(K[b], xb[ok])[:, :2])
+            if R is not None:
+                rotations[(a, b)] = R
+        broken = broken_cycle_pairs(rotations)
+        if not broken:
+            return self
+        return WindowGeometry(self.problem, {k: m for k, m in self.models.items() if k not in broken},
+                              self.unverified_threshold)
 
     def transfers(self, a: int, b: int) -> tuple:
         """Per keypoint of views a < b (verified) what their model maps it to: planar — H x_a
@@ -251,15 +295,19 @@ def _track_agrees(data, members, n_a, n_b):
 
 
 def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
-                    threshold: float, chained_models: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                    threshold: float, chained_models: bool = False,
+                    rotation_cycles: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
-    ``threshold`` with every two members agreeing (:class:`TrackCheck`); with
-    ``chained_models`` the geometry first gains the chained models of its unverified view
-    pairs (module docstring).
+    ``threshold`` with every two members agreeing (:class:`TrackCheck`). With
+    ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
+    (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
+    then gains the chained models of its unverified view pairs (module docstring).
 
     Shapes: rows, cols, scores (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
     """
     rows, cols, scores = np.asarray(rows), np.asarray(cols), np.asarray(scores)
+    if rotation_cycles:
+        geometry = geometry.with_closed_rotation_cycles(rows, cols)
     keep = geometry.keep(rows, cols, scores)
     if chained_models:
         chained = geometry.with_chained_models(rows[keep], cols[keep], scores[keep], threshold)

@@ -72,6 +72,11 @@ class GCNSolverConfig(SolverConfig):
             (:mod:`gcn_match_ros.edges.consistency`); None: the loaded model's choice
             (``config["solver"]["chained_models"]``: true for the shipped ORB model, see
             models/README.md), else False.
+        rotation_cycles: with ``verify`` and known intrinsics, models whose rotation closes none
+            of the window's rotation cycles are not trusted (:mod:`gcn_match_ros.edges.rotation_cycles`):
+            for wide views of large scenes with repeated structure (castle-P19: geometric precision
+            0.80 -> 0.86); off by default, as a small object's rotations are too uncertain for it
+            (generated scenes: F1 0.82 -> 0.29; benchmarks/results/model_cycles.md).
     """
 
     graph: str = "checkpoint"
@@ -84,6 +89,7 @@ class GCNSolverConfig(SolverConfig):
     verify: bool = True
     unverified_threshold: float = UNVERIFIED_THRESHOLD
     chained_models: Optional[bool] = None
+    rotation_cycles: bool = False
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -214,7 +220,7 @@ class GCNSolver(Solver):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
         with stage("rounding"):
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
-                                          self.chained_models)
+                                          self.chained_models, self.config.rotation_cycles)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 

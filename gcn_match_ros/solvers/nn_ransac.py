@@ -36,12 +36,15 @@ class NNRansacConfig(SolverConfig):
     """Settings: px, the residual (pixels) a pair may have under its view pair's model; guided,
     add the geometry-guided candidates; chained_models: with ``guided``, view pairs without a
     trusted model may gain one from the tracks chained through other views
-    (:mod:`gcn_match_ros.edges.consistency`). The ``graph`` setting is not used (no graph is built)."""
+    (:mod:`gcn_match_ros.edges.consistency`); rotation_cycles: with ``guided`` and known
+    intrinsics, models closing none of the window's rotation cycles are not trusted
+    (:mod:`gcn_match_ros.edges.rotation_cycles`; off by default, as for gcn). The ``graph`` setting is not used (no graph is built)."""
 
     threshold: float = 0.0
     px: float = 3.0
     guided: bool = False
     chained_models: bool = False
+    rotation_cycles: bool = False
 
 
 @register
@@ -63,7 +66,8 @@ class NNRansacSolver(Solver):
             rows, cols, scores = es.rows[pick], es.cols[pick], f[pick, _F["cosine"]]
             # scores are cosines: no pair of a view pair without a trusted model is kept
             keep, track = verified_tracks(WindowGeometry(problem, es.models, unverified_threshold=1.0),
-                                          rows, cols, scores, self.threshold, self.config.chained_models)
+                                          rows, cols, scores, self.threshold, self.config.chained_models,
+                                          self.config.rotation_cycles)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
                                                  min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2),
