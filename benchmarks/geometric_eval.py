@@ -39,7 +39,8 @@ from gcn_match_ros.geometric_metrics import chance_pass_rate, pairs_consistent, 
 from gcn_match_ros.plots import plot_reliability
 
 REPO = Path(__file__).resolve().parents[1]
-METHODS = ["gcn", "gcn:verify=false", "nn", "nn-ransac", "nn-ransac:guided=true"]
+METHODS = ["gcn", "gcn:rotation_cycles=true", "gcn:verify=false", "nn", "nn-ransac", "nn-ransac:guided=true",
+           "nn-ransac:guided=true,rotation_cycles=true"]
 SCORE_THRESHOLD = 0.1  # the matcher node's default: pairs scored above it are published
 OVERLAP_NONE = 0.05    # a view pair whose frusta share less than this sees no common point
 BINS = np.round(np.arange(0.1, 0.95, 0.1), 2)
@@ -179,7 +180,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="3 windows a scene")
     ap.add_argument("--detector", default="sift", choices=("sift", "orb"))
     ap.add_argument("--features", type=int, default=500)
-    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--methods", default=";".join(METHODS))
     ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "geometric_eval.md"))
     args = ap.parse_args(argv)
