@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.edges.rotation_cycles and WindowGeometry.with_closed_rotation_cycles:
 relative rotations of a window's essential matrices must compose."""
+import cv2
 import numpy as np
 
 from conftest import random_rotation
@@ -14,11 +15,9 @@ K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
 
 
 def _turn(axis, deg):
-    """Rotation by ``deg`` about ``axis`` (Rodrigues)."""
+    """Rotation by ``deg`` about ``axis``."""
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    a = np.radians(deg)
-    S = skew(axis)
-    return np.eye(3) + np.sin(a) * S + (1 - np.cos(a)) * S @ S
+    return cv2.Rodrigues(np.radians(deg) * axis)[0]
 
 
 def _cameras(n, seed=0):

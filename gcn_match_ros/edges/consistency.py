@@ -136,22 +136,17 @@ class WindowGeometry:
         K = self.problem.K
         if K is None:
             return self
-        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        va, vb = self.view_index[rows], self.view_index[cols]
-        swap = va > vb
-        rows, cols = np.where(swap, cols, rows), np.where(swap, rows, cols)
-        va, vb = np.minimum(va, vb), np.maximum(va, vb)
+        rows, cols, va, vb = self._in_view_order(rows, cols)
+        agreeing = self.agree(rows, cols)
         rotations = {}
         for (a, b), model in self.models.items():
             if model.planar or not model.essential:
                 continue
-            m = (va == a) & (vb == b)
-            xa, xb = self.keypoints[rows[m]], self.keypoints[cols[m]]
-            ok = model.agrees(xa, xb)
-            if ok.sum() < MIN_ROTATION_PAIRS:
+            m = agreeing & (va == a) & (vb == b)
+            if m.sum() < MIN_ROTATION_PAIRS:
                 continue
-            R = relative_rotation(K[b].T @ model.F @ K[a], unproject(K[a], xa[ok])[:, :2],
-                                  unproject(K[b], xb[ok])[:, :2])
+            R = relative_rotation(K[b].T @ model.F @ K[a], unproject(K[a], self.keypoints[rows[m]])[:, :2],
+                                  unproject(K[b], self.keypoints[cols[m]])[:, :2])
             if R is not None:
                 rotations[(a, b)] = R
         broken = broken_cycle_pairs(rotations)
@@ -178,6 +173,16 @@ class WindowGeometry:
             return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, model.px
         return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
 
+    def _in_view_order(self, rows: np.ndarray, cols: np.ndarray) -> Tuple[np.ndarray, ...]:
+        """The pairs with each one's keypoint of the lower view first, and their views.
+
+        Shapes: rows, cols (M,) -> rows, cols, view of rows, view of cols (M,) int64.
+        """
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        va, vb = self.view_index[rows], self.view_index[cols]
+        swap = va > vb
+        return np.where(swap, cols, rows), np.where(swap, rows, cols), np.minimum(va, vb), np.maximum(va, vb)
+
     def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """Whether each pair may be matched on geometric grounds alone: it agrees with its
         verified view pair's model (:meth:`.verify.PairModel.agrees`, within ``slack`` x its
@@ -186,11 +191,7 @@ class WindowGeometry:
 
         Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
         """
-        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        va, vb = self.view_index[rows], self.view_index[cols]
-        swap = va > vb
-        rows, cols = np.where(swap, cols, rows), np.where(swap, rows, cols)
-        va, vb = np.minimum(va, vb), np.maximum(va, vb)
+        rows, cols, va, vb = self._in_view_order(rows, cols)
         out = self.small[va] | self.small[vb]
         for (a, b), model in self.models.items():
             m = (va == a) & (vb == b)
