@@ -123,8 +123,9 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     """H and F (each None if it fails) from seed pairs xa[i] <-> xb[i] (pixels); None when
     neither fits. With both intrinsics K_a, K_b (3, 3) the epipolar model is an essential
     matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F;
-    ``estimator``: OpenCV's method for F (pixels only); ``max_iters``: RANSAC iterations of H
-    and of F from pixels (fewer bound the cost and find only models of high inlier shares).
+    ``estimator``: OpenCV's method for F or E (MAGSAC follows it where an E is degenerate);
+    ``max_iters``: RANSAC iterations of H and of F from pixels (fewer bound the cost and find
+    only models of high inlier shares).
 
     Shapes: xa, xb (S, 2).
     """
@@ -144,7 +145,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     except cv2.error:
         H = None
     calibrated = K_a is not None and K_b is not None
-    F, nf = (_fit_essential(a, b, epipolar_px, K_a, K_b, seed) if calibrated
+    F, nf = (_fit_essential(a, b, epipolar_px, K_a, K_b, seed, estimator) if calibrated
              else _fit_fundamental(a, b, epipolar_px, seed, estimator, max_iters))
     if H is None and F is None:
         return None
@@ -174,14 +175,14 @@ def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int,
 
 
 def _fit_essential(a: np.ndarray, b: np.ndarray, px: float, K_a: np.ndarray, K_b: np.ndarray,
-                   seed: int) -> Tuple[Optional[np.ndarray], int]:
+                   seed: int, estimator: int = EPIPOLAR_ESTIMATOR) -> Tuple[Optional[np.ndarray], int]:
     """F = K_b⁻ᵀ E K_a⁻¹ from the 5-point essential matrix of calibrated points; inliers are
     the seeds within ``px`` (pixels, via the mean focal length) that triangulate in front of
     both cameras."""
     ua, ub = unproject(K_a, a)[:, :2], unproject(K_b, b)[:, :2]
     focal = 0.25 * (K_a[0, 0] + K_a[1, 1] + K_b[0, 0] + K_b[1, 1])
     best, inliers = None, 0
-    for method in (EPIPOLAR_ESTIMATOR, cv2.USAC_MAGSAC):
+    for method in (estimator, cv2.USAC_MAGSAC):
         E, count, fitted = _essential_with_cheirality(ua, ub, px / focal, method, seed)
         if count > inliers:
             best, inliers = E, count
