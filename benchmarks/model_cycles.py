@@ -28,11 +28,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gcn_match_ros import solvers
+from gcn_match_ros.data import synthetic
 from gcn_match_ros.data.convert import make_problem
 from gcn_match_ros.data.scenes import load_scene
-from gcn_match_ros.descriptors import cosine_distance
 from gcn_match_ros.edges import verify
-from gcn_match_ros.edges.candidates import EdgeConfig
+from gcn_match_ros.edges.candidates import EdgeConfig, confident_pairs
 from gcn_match_ros.edges.rotation_cycles import (MIN_ROTATION_PAIRS, ROTATION_CYCLE_DEG, broken_cycle_pairs, cycle_errors,
                                                  relative_rotation, rotation_angle_deg)
 from gcn_match_ros.edges.verify import fit_pair
@@ -40,6 +41,7 @@ from gcn_match_ros.experiments import (DATA_ROOT, GEOMETRIC_DEV_SCENES, GEOMETRI
                                        spaced_windows)
 from gcn_match_ros.geometric_metrics import pair_epipolar_px
 from gcn_match_ros.geometry import unproject
+from gcn_match_ros.metrics import score_result
 from gcn_match_ros.similarity import DescriptorSimilarity, most_similar
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,25 +55,14 @@ FITS = (("as shipped (USAC_ACCURATE, 2 px, ratio 0.8)", {}, 0.8, cv2.USAC_ACCURA
 
 
 def seeds(block: np.ndarray, ratio: float):
-    """Mutual nearest neighbours of a similarity block passing Lowe's ratio both ways (as
-    edges.candidates picks its seeds)."""
-    top_r, ir, top_c, ic = most_similar(block, 2, 2)
-    nn_r, nn_c = ir[:, 0], ic[:, 0]
-    mutual = nn_c[nn_r] == np.arange(block.shape[0])
-    ratio_r = cosine_distance(top_r[:, 0]) / np.maximum(cosine_distance(top_r[:, 1]), 1e-9)
-    ratio_c = cosine_distance(top_c[:, 0]) / np.maximum(cosine_distance(top_c[:, 1]), 1e-9)
-    a = np.flatnonzero(mutual & (ratio_r < ratio) & (ratio_c[nn_r] < ratio))
-    return a, nn_r[a]
+    """The confident pairs of a similarity block, as edges.candidates picks its seeds."""
+    a, b, _ = confident_pairs(*most_similar(block, 2, 2), ratio)
+    return a, b
 
 
 def fit(xa, xb, K_a, K_b, settings, estimator):
     """fit_pair with another estimator for the essential matrix; the trusted model or None."""
-    shipped = verify.EPIPOLAR_ESTIMATOR
-    verify.EPIPOLAR_ESTIMATOR = estimator
-    try:
-        m = fit_pair(xa, xb, K_a=K_a, K_b=K_b, **settings)
-    finally:
-        verify.EPIPOLAR_ESTIMATOR = shipped
+    m = fit_pair(xa, xb, K_a=K_a, K_b=K_b, estimator=estimator, **settings)
     return m.selected() if m is not None and m.trusted() else None
 
 
@@ -137,10 +128,6 @@ def evaluate_scene(name, held_out, fits, models_out, data_root):
 def generated_lines(seeds=range(3)):
     """gcn with and without the rotation-cycle test on generated scenes (a small object seen
     from an orbit: every model right, its rotation uncertain by degrees)."""
-    from gcn_match_ros import solvers
-    from gcn_match_ros.data import synthetic
-    from gcn_match_ros.metrics import score_result
-
     lines = ["## Generated scenes (rome16k preset, 3 views, seeds [11, 0..2])\n",
              "| method | F1 | P |", "|---|---|---|"]
     problems = [synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([11, s])) for s in seeds]

@@ -41,7 +41,8 @@ from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import EPIPOLAR_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
-__all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "EDGE_FEATURES", "RANK_CAP"]
+__all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "confident_pairs", "EDGE_FEATURES",
+           "RANK_CAP"]
 
 EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
                  "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
@@ -195,22 +196,16 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
     top_r, ir, top_c, ic = most_similar(sim, min(RANK_CAP + 1, nb), min(RANK_CAP + 1, na))
     best_r, sec_r = top_r[:, 0], top_r[:, 1]
     best_c, sec_c = top_c[:, 0], top_c[:, 1]
-    nn_r, nn_c = ir[:, 0], ic[:, 0]
     ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
     eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
-    mutual_ab = (nn_c[nn_r] == np.arange(na))
-    ratio_r = cosine_distance(best_r) / np.maximum(cosine_distance(sec_r), 1e-9)
-    ratio_c = cosine_distance(best_c) / np.maximum(cosine_distance(sec_c), 1e-9)
-    conf_a = np.flatnonzero(mutual_ab & (ratio_r < config.ratio) & (ratio_c[nn_r] < config.ratio))
-    conf_b = nn_r[conf_a]
     model = None
     if config.geometry:
-        seed_a, seed_b = conf_a, conf_b
+        seed_a, seed_b, mutual_ab = confident_pairs(top_r, ir, top_c, ic, config.ratio)
         if seed_a.shape[0] < MIN_SEEDS:
             # too few ratio-test survivors (repetitive or noisy descriptors): fit on all
             # mutual nearest neighbours instead; the robust estimator copes with the outliers
             seed_a = np.flatnonzero(mutual_ab)
-            seed_b = nn_r[seed_a]
+            seed_b = ir[seed_a, 0]
         with stage("geometry"):
             def fit() -> Optional[PairModel]:
                 return fit_pair(xa[seed_a], xb[seed_b], K_a=K_a, K_b=K_b, epipolar_px=config.epipolar_px)
@@ -253,6 +248,27 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
         kind = 0.0
     return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
                           np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2), model
+
+
+def confident_pairs(top_r: np.ndarray, ir: np.ndarray, top_c: np.ndarray, ic: np.ndarray,
+                    ratio: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The confident pairs of a view pair (a, b), the seeds of its two-view model: mutual nearest
+    neighbours passing Lowe's ``ratio`` from both sides.
+
+    Args:
+        top_r, ir, top_c, ic: a similarity block's best rows and columns, at least two each
+            (:func:`gcn_match_ros.similarity.most_similar`).
+
+    Returns:
+        keypoints of a, their partners in b (C,) int64, and whether each keypoint of a is its
+        nearest neighbour's nearest neighbour (n_a,) bool.
+    """
+    nn_r, nn_c = ir[:, 0], ic[:, 0]
+    mutual = nn_c[nn_r] == np.arange(ir.shape[0])
+    ratio_r = cosine_distance(top_r[:, 0]) / np.maximum(cosine_distance(top_r[:, 1]), 1e-9)
+    ratio_c = cosine_distance(top_c[:, 0]) / np.maximum(cosine_distance(top_c[:, 1]), 1e-9)
+    conf_a = np.flatnonzero(mutual & (ratio_r < ratio) & (ratio_c[nn_r] < ratio))
+    return conf_a, nn_r[conf_a], mutual
 
 
 def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, px: float):
