@@ -142,8 +142,9 @@ class LandmarkTracker:
         founders = order[~winners & (sizes[order] >= 2)]
         landmark = np.full(n, -1, np.int64)   # per keypoint: its landmark's index (-1: none)
         if continued.size:
-            self._sighted(continued, best_lm[continued], units, column, keypoints, desc, stamp_ns)
-            landmark[np.concatenate([units[u] for u in continued])] = np.repeat(best_lm[continued], sizes[continued])
+            members = np.concatenate([units[u] for u in continued])
+            self._sighted(best_lm[continued], members, sizes[continued], column, keypoints, desc, stamp_ns)
+            landmark[members] = np.repeat(best_lm[continued], sizes[continued])
         if founders.size:
             first = self._found([units[u] for u in founders], column, keypoints, desc, stamp_ns)
             landmark[np.concatenate([units[u] for u in founders])] = np.repeat(first + np.arange(founders.size),
@@ -324,11 +325,10 @@ class LandmarkTracker:
         self._born_ns, self._seen_ns = self._born_ns[keep], self._seen_ns[keep]
         self._xy, self._xy_before, self._before_ns = self._xy[keep], self._xy_before[keep], self._before_ns[keep]
 
-    def _sighted(self, us, js, units, column, keypoints, desc, stamp_ns) -> None:
-        """Update the landmarks ``js`` with their units ``us`` ((K,) each), at once."""
+    def _sighted(self, js, rows, sizes, column, keypoints, desc, stamp_ns) -> None:
+        """Update the landmarks ``js`` (K,) with their units at once: the units' members one
+        unit after another in ``rows``, ``sizes`` (K,) members each."""
         w = self.config.summary_weight
-        rows = np.concatenate([units[u] for u in us])
-        sizes = np.array([units[u].size for u in us])
         # each unit's descriptor sum as one sparse (units x keypoints) product: 8x faster than reduceat
         members = scipy.sparse.csr_matrix((np.ones(rows.size, np.float32), rows, np.r_[0, np.cumsum(sizes)]),
                                           shape=(sizes.size, desc.shape[0]))
