@@ -58,9 +58,11 @@ MOTION_FIT_PAIRS = 128
 #: (~0.9: a few dozen), bounded where most of a frame pair's continuations are wrong (then no
 #: model is found and they stay unchecked)
 MOTION_MAX_ITERS = 200
-#: last window's motion model of a camera pair is used again while it explains this share of
-#: the pairs (else re-fitted)
-MOTION_REUSE_SHARE = 0.8
+#: last window's motion model of a camera pair is used again while the share of the pairs it
+#: explains is at most this much below its share when it was fitted (else re-fitted): a model
+#: kept while it explained an absolute 0.8 drifted from the moving rig over windows and dropped
+#: right continuations (landmark_eval: 1.24 vs 0.71 id switches per 100 on 2 cameras, seed 10)
+MOTION_REUSE_DROP = 0.02
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
 
@@ -99,7 +101,7 @@ class LandmarkTracker:
         self._xy = np.zeros((0, 0, 2))   # (L, cameras, 2): where each camera saw it last (NaN: not)
         self._xy_before = np.zeros((0, 0, 2))  # (L, cameras, 2): the same at the sighting before
         self._before_ns = np.zeros(0, np.int64)  # time of that sighting (-1: none)
-        self._motion_models = {}          # (last camera, camera) column -> last window's motion model
+        self._motion_models = {}          # (last camera, camera) column -> (motion model, share explained when fitted)
         self._previous_ns = None          # the last window's time
         self.born = 0
         self.retired = 0
@@ -131,13 +133,12 @@ class LandmarkTracker:
             member, lm, score = self._candidates(column, keypoints, desc)
             best_lm, best_score = _best_per_unit(unit_of[member], lm, score, len(units), cfg.ratio)
             if cfg.verify_motion:
-                best_lm = self._motion_checked(best_lm, units, sizes, column, keypoints)
+                claimed = _one_to_one(best_lm, best_score) >= 0
+                best_lm = self._motion_checked(best_lm, claimed, units, sizes, column, keypoints)
         # units take landmarks one-to-one, best score first; a track left without one is a new point
+        best_lm = _one_to_one(best_lm, best_score)
         order = np.argsort(-best_score, kind="stable")
-        ranked_lm = best_lm[order]
-        claims = np.flatnonzero(ranked_lm >= 0)
-        winners = np.zeros(len(units), bool)
-        winners[claims[np.unique(ranked_lm[claims], return_index=True)[1]]] = True
+        winners = best_lm[order] >= 0
         continued = order[winners]
         founders = order[~winners & (sizes[order] >= 2)]
         landmark = np.full(n, -1, np.int64)   # per keypoint: its landmark's index (-1: none)
@@ -173,7 +174,7 @@ class LandmarkTracker:
         keep = np.isfinite(best)
         return member[keep], lm[keep], best[keep]
 
-    def _motion_checked(self, best_lm, units, sizes, column, keypoints):
+    def _motion_checked(self, best_lm, claimed, units, sizes, column, keypoints):
         """The continuations that agree with the image motion since the last sightings.
 
         Each continuation pairs a member's pixel with its landmark's last sighting in a camera;
@@ -182,9 +183,15 @@ class LandmarkTracker:
         is checked against the identity; the others, where a continuation is still unchecked,
         fit a two-view model (:func:`gcn_match_ros.edges.verify.fit_pair`; H unless F explains
         clearly more pairs) and count only with the support of a trusted one (``edges.verify``).
+        The models are fitted on (and a frame pair is fitted only for) the continuations of the
+        units that keep their landmark if it passes (``claimed``, (U,) bool: first in the
+        one-to-one claims): a unit outscored for its landmark is mostly a wrong continuation, and
+        a static 2-camera scene's lone keypoints made 70% of the fitted pairs wrong (every fit
+        untrusted, four a window); every continuation is still checked against the models.
         Consecutive frames of a camera pair re-check last window's model first and re-fit only
-        when it explains less than ``MOTION_REUSE_SHARE`` of the pairs, as the rig memory does
-        for camera pairs: a rig moving steadily is not re-fitted every window.
+        when it explains a share of the pairs more than ``MOTION_REUSE_DROP`` below its share
+        when fitted, as the rig memory does for camera pairs: a rig moving steadily is not
+        re-fitted every window.
         A continuation most of whose checked pairs disagree is dropped (one wrong member of a
         track does not undo the track's continuation): what descriptors and the image gate
         cannot tell apart on repetitive structure, the motion of the other points can.
@@ -223,50 +230,53 @@ class LandmarkTracker:
         groups = np.split(by_key, np.cumsum(np.bincount(key))[:-1])   # pairs of each key, ascending
         bridge_of = [bridges.get((int(pair_cam[g[0]]), int(row_column[pair_row[g[0]]]), int(seen_ns[g[0]])))
                      for g in groups]
-        sized = [g.size + (0 if b is None else b[0].shape[0]) >= MIN_SEEDS for g, b in zip(groups, bridge_of)]
-        groups = [g for g, ok in zip(groups, sized) if ok]
-        bridge_of = [b for b, ok in zip(bridge_of, sized) if ok]
+        pair_claimed = claimed[unit_of_row[pair_row]]
+        fitted_on = [g[pair_claimed[g]] for g in groups]
+        sized = [f.size + (0 if b is None else b[0].shape[0]) >= MIN_SEEDS for f, b in zip(fitted_on, bridge_of)]
+        groups, fitted_on, bridge_of = ([a for a, ok in zip(x, sized) if ok] for x in (groups, fitted_on, bridge_of))
         moved = np.linalg.norm(xb - xa, axis=1)
-        still = [bool(np.median(moved[g]) <= RANSAC_PX) for g in groups]
+        still = [bool(f.size and np.median(moved[f]) <= RANSAC_PX) for f in fitted_on]
         # frame pairs whose image held still first (a standing robot; on the sample bags an image
         # seen again by the next camera): the identity is their model, exact and free, and F
         # would be degenerate there. Then fitted models, only where a continuation is still
         # unchecked: each fit costs about a millisecond.
-        for sel in [g for g, s in zip(groups, still) if s]:
-            if trusted_support(int((moved[sel] <= RANSAC_PX).sum()), sel.size):
+        for sel, on in [(g, f) for g, f, s in zip(groups, fitted_on, still) if s]:
+            if trusted_support(int((moved[on] <= RANSAC_PX).sum()), on.size):
                 np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
                 np.add.at(checked, unit_of_row[pair_row[sel]], 1)
-        for sel, bridge in [(g, b) for g, s, b in zip(groups, still, bridge_of) if not s]:
-            if checked[unit_of_row[pair_row[sel]]].all():
+        for sel, on, bridge in [(g, f, b) for g, f, s, b in zip(groups, fitted_on, still, bridge_of) if not s]:
+            if checked[unit_of_row[pair_row[on]]].all():
                 continue
             # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
-            fa, fb = (xa[sel], xb[sel]) if bridge is None else (np.concatenate([xa[sel], bridge[0]]),
-                                                                  np.concatenate([xb[sel], bridge[1]]))
+            fa, fb = (xa[on], xb[on]) if bridge is None else (np.concatenate([xa[on], bridge[0]]),
+                                                              np.concatenate([xb[on], bridge[1]]))
             # consecutive frames of a camera pair: last window's model first (a rig moving
-            # steadily moves alike window after window), re-fitted when it no longer explains
-            # nearly all pairs
+            # steadily moves alike window after window), re-fitted when it explains fewer pairs
+            # than when it was fitted
             cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
             consecutive = seen_ns[sel[0]] == self._previous_ns
-            model = self._motion_models.get(cams) if consecutive else None
+            model, fitted_share = self._motion_models.get(cams, (None, 0.0)) if consecutive else (None, 0.0)
             support = _motion_support(model, fa, fb) if model is not None else None
-            if support is None or max(support[2:]) < MOTION_REUSE_SHARE * fa.shape[0]:
+            if support is None or max(support[2:]) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
                 # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
                 fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
                 model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
                 if model is None:
                     continue
                 support = _motion_support(model, fa, fb)
-            rh, rf, inliers_h, inliers_f = support
+                fitted_share = max(support[2:]) / fa.shape[0]
+            inliers_h, inliers_f = support[2:]
             if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
             if consecutive:
-                self._motion_models[cams] = model
+                self._motion_models[cams] = (model, fitted_share)
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
             # small rig motion makes H almost as good as F by the estimators' counts, yet near
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
+            rh, rf = residuals(model, xa[sel], xb[sel])
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
-            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree[:sel.size], 1, -1))
+            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
             np.add.at(checked, unit_of_row[pair_row[sel]], 1)
         gap = np.zeros(len(units), bool)
         gap[cont] = self._seen_ns[best_lm[cont]] != self._previous_ns
@@ -401,6 +411,20 @@ def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units:
     second = np.where(np.isfinite(second), second, -1.0)
     ok = np.isfinite(first) & ((cosine_distance(first) < ratio * cosine_distance(second)) | (second < 0))
     return np.where(ok, best_lm, -1), np.where(ok, first, 0.0)
+
+
+def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Each landmark to the unit that scores it highest (the first unit on ties); the other
+    units' landmark becomes -1.
+
+    Shapes: best_lm (U,) landmark index (-1: none), score (U,) -> (U,).
+    """
+    order = np.argsort(-score, kind="stable")
+    ranked = best_lm[order]
+    claims = np.flatnonzero(ranked >= 0)
+    won = np.zeros(best_lm.shape[0], bool)
+    won[order[claims[np.unique(ranked[claims], return_index=True)[1]]]] = True
+    return np.where(won, best_lm, -1)
 
 
 def _motion_support(model, xa: np.ndarray, xb: np.ndarray):

@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.landmarks (persistent ids), landmark_metrics and data.rig_sequence."""
 import numpy as np
+import pytest
 
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
 from gcn_match_ros.descriptors import cosine_distance
@@ -8,6 +9,17 @@ from gcn_match_ros.landmarks import LandmarkConfig, LandmarkTracker, PerCameraNN
 
 CAMS = ("a", "b")
 PERIOD = 10**8
+
+
+@pytest.fixture
+def motion_fits(monkeypatch):
+    """The tracker's motion fits, counted: a list that grows by one per fit_pair call."""
+    import gcn_match_ros.landmarks as landmarks_module
+
+    fits = []
+    real_fit = landmarks_module.fit_pair
+    monkeypatch.setattr(landmarks_module, "fit_pair", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    return fits
 
 
 def _window(rng, base_desc, xy, present, shift, noise=0.05):
@@ -200,14 +212,9 @@ def test_a_continuation_against_the_motion_of_the_others_is_refused():
         assert np.array_equal(ids2[1:P], ids1[1:P])  # the others continue either way
 
 
-def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(monkeypatch):
+def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(motion_fits):
     """Like the rig memory: the motion of consecutive frames of a camera pair is re-checked on
     the next window and re-fitted only when it no longer explains the continuations."""
-    import gcn_match_ros.landmarks as landmarks_module
-
-    fits = []
-    real_fit = landmarks_module.fit_pair
-    monkeypatch.setattr(landmarks_module, "fit_pair", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     rng = np.random.default_rng(8)
     P = 60
     base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
@@ -221,7 +228,7 @@ def test_a_steady_motion_is_fitted_once_and_a_new_one_refitted(monkeypatch):
         desc = np.concatenate([base, base]) + 0.02 * rng.normal(size=(2 * P, 32))
         ids, _ = tracker.update(CAMS, np.array([0, n, 2 * n]), kp, desc.astype(np.float32),
                                 np.r_[np.arange(n), np.arange(n)], t * PERIOD)
-        fitted.append(len(fits))
+        fitted.append(len(motion_fits))
         if previous is not None:
             assert np.array_equal(ids, previous)  # every point keeps its id throughout
         previous = ids
@@ -280,3 +287,54 @@ def test_true_points_from_bag_labels():
 
     assert true_points(np.array([4, -1, -2, 0]), 4).tolist() == [4, -1, -1, 0]
     assert true_points(None, 3).tolist() == [-1, -1, -1]
+
+
+def test_a_drifting_motion_is_refitted_before_it_explains_too_few(motion_fits):
+    """The motion model of consecutive frames is re-fitted once it explains clearly fewer
+    continuations than when it was fitted, though still most of them: a model kept while it
+    explained 80% drifted from a moving rig and dropped right continuations."""
+    rng = np.random.default_rng(12)
+    P = 80
+    base, xy = rng.normal(size=(P, 32)), rng.uniform(50, 550, (P, 2))
+    centre, angle = np.array([300.0, 300.0]), np.radians(0.6)
+    turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    steady = lambda p: p + [6.0, 0.0]                          # noqa: E731
+    turning = lambda p: (p - centre) @ turn.T + centre + [6.0, 0.0]  # noqa: E731
+    positions = [xy, steady(xy), steady(steady(xy))]
+    positions.append(turning(positions[-1]))
+    # the steady model still explains most of the turning window's motion, not all of it
+    off = np.linalg.norm(positions[3] - steady(positions[2]), axis=1)
+    assert 0.8 <= np.mean(off <= 3.0) <= 0.95
+    tracker = LandmarkTracker()
+    fitted, previous = [], None
+    for t, pos in enumerate(positions):
+        kp = np.concatenate([pos, pos + [25.0, 0.0]])
+        desc = np.concatenate([base, base]) + 0.02 * rng.normal(size=(2 * P, 32))
+        ids, _ = tracker.update(CAMS, np.array([0, P, 2 * P]), kp, desc.astype(np.float32),
+                                np.r_[np.arange(P), np.arange(P)], t * PERIOD)
+        fitted.append(len(motion_fits))
+        if previous is not None:
+            assert np.array_equal(ids, previous)
+        previous = ids
+    per_window = np.diff([0] + fitted)
+    assert per_window[1] > 0 and per_window[2] == 0   # fitted, then re-checked and kept
+    assert per_window[3] > 0                          # 80-95% explained: re-fitted
+
+
+def test_a_still_scene_makes_no_motion_fits(motion_fits):
+    """Two cameras watch a still scene: every landmark continues in place. The keypoints the
+    matcher left alone whose best landmark another unit claims used to fill the motion fits
+    with wrong pairs (three untrusted fits here); only the units that keep their landmark decide
+    the fits, and a still image needs none."""
+    from gcn_match_ros import solvers
+    from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
+
+    p = random_scene_problem(rome16k(2, n_points=300), rng=0)
+    track = solvers.create("nn").solve(p).track
+    tracker = LandmarkTracker()
+    ids = [tracker.update(CAMS, p.view_offsets, p.keypoints, p.descriptors, track, t * PERIOD)[0]
+           for t in range(3)]
+    assert motion_fits == []
+    in_track = np.flatnonzero(track >= 0)
+    assert in_track.size > 0 and (ids[0][in_track] >= 0).all()
+    assert np.array_equal(ids[1][in_track], ids[0][in_track]) and np.array_equal(ids[2], ids[1])
