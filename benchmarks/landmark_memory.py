@@ -65,7 +65,7 @@ def main(argv=None) -> int:
                f"{rss[0]:.0f} to {rss[-1]:.0f} MB after the first minute "
                f"({'flat' if rss[-1] - rss[0] < 0.1 * rss[0] + 20 else 'GROWING'}).")
     header = results_header("Landmark state on a long stream", __file__, sys.argv[1:] if argv is None else argv,
-                            env=("OPENBLAS_NUM_THREADS=1",))
+                            env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\n{cfg.n_cameras} cameras, {RATE_HZ} Hz, {cfg.n_points} scene points along "
             f"{length:.0f} m, true tracks; wall time {time.perf_counter() - start:.0f} s.\n\n"
             + "\n".join(lines) + "\n\n" + verdict + "\n")

@@ -321,7 +321,13 @@ def command_line(script: Union[str, Path], argv: Optional[Sequence[str]] = None,
 
     Returns:
         E.g. ``.venv/bin/python benchmarks/real_eval.py --quick``.
+
+    Raises:
+        ValueError: an ``env`` entry that is not a bare name (``NAME=value`` would never be shown).
     """
+    bad = [k for k in env if not k.isidentifier()]
+    if bad:
+        raise ValueError(f"env takes variable names, got {bad}")
     path, repo = Path(script).resolve(), Path(__file__).resolve().parents[1]
     shown = path.relative_to(repo) if path.is_relative_to(repo) else Path(script)
     args = list(sys.argv[1:] if argv is None else argv)

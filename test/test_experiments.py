@@ -103,6 +103,8 @@ def test_command_line_and_results_header(monkeypatch):
     assert command_line(script, [], launcher="./run.sh python", env=("OPENBLAS_NUM_THREADS", "UNSET_VAR_X")) == \
         "OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/some_bench.py"
     monkeypatch.setattr(sys, "argv", ["some_bench.py", "--seed", "3"])
+    with pytest.raises(ValueError, match="variable names"):
+        command_line(script, [], env=("OPENBLAS_NUM_THREADS=1",))
     assert command_line("/elsewhere/tool.py").endswith(" /elsewhere/tool.py --seed 3")  # outside: as given
     header = results_header("My results", script, ["-q"], torch_threads=1)
     assert len(header) == 3
