@@ -161,3 +161,21 @@ def test_device_setting_is_checked_before_any_model_is_loaded():
         cpu, gpu = (score_result(problem, solvers.create(f"gcn:device={d}").solve(problem))["F1"]
                     for d in ("cpu", "cuda"))
         assert abs(cpu - gpu) < 0.005
+
+
+def test_epipolar_ratio_only_removes_pairs(one_torch_thread):
+    """The ambiguity rule drops pairs before the tracks are merged: what it publishes is a subset
+    of the pairs published without it; off by default; a negative ratio is refused."""
+    from gcn_match_ros.data import synthetic
+
+    assert solvers.create("gcn").config.epipolar_ratio == 0.0
+    with pytest.raises(ValueError, match="epipolar_ratio"):
+        solvers.create("gcn:epipolar_ratio=-1")
+    problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([11, 0]))
+    plain = solvers.create("gcn").solve(problem)
+    strict = solvers.create("gcn:epipolar_ratio=0.8").solve(problem)
+    n = problem.n_keypoints
+    before = set((plain.pair_rows * n + plain.pair_cols).tolist())
+    after = set((strict.pair_rows * n + strict.pair_cols).tolist())
+    assert after < before  # generated scenes' weak descriptors: many pairs have a rival on their line
+    assert is_cycle_consistent(strict.track, problem.view_index)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..descriptors import describe_descriptor_kind, descriptor_kind
+from ..edges.ambiguity import ambiguous_pairs
 from ..edges.candidates import candidate_edges
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
@@ -77,6 +78,12 @@ class GCNSolverConfig(SolverConfig):
             for wide views of large scenes with repeated structure (castle-P19: geometric precision
             0.80 -> 0.86); off by default, as a small object's rotations are too uncertain for it
             (generated scenes: F1 0.82 -> 0.29; benchmarks/results/model_cycles.md).
+        epipolar_ratio: with ``verify``, a pair of a view pair with a trusted epipolar model is
+            dropped when another keypoint along its epipolar line is nearly as similar to it
+            (Lowe's ratio along the line at or above this, :mod:`gcn_match_ros.edges.ambiguity`):
+            repetitions of a structure the cameras move along (castle-P19's facade: geometric
+            precision 0.80 -> 0.85 at 0.8). 0: off, the default: with weak descriptors every
+            right pair has a rival on its line (generated scenes: F1 0.88 -> 0.28).
     """
 
     graph: str = "checkpoint"
@@ -90,6 +97,7 @@ class GCNSolverConfig(SolverConfig):
     unverified_threshold: float = UNVERIFIED_THRESHOLD
     chained_models: Optional[bool] = None
     rotation_cycles: bool = False
+    epipolar_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -100,6 +108,8 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         if not 0.0 <= self.unverified_threshold <= 1.0:
             raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
+        if not self.epipolar_ratio >= 0.0:
+            raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
         try:
             device = torch.device(self.device)
         except RuntimeError as exc:
@@ -210,8 +220,14 @@ class GCNSolver(Solver):
                     with stage("candidates"):
                         soft = _with_descriptor_matches(problem, soft, similarity)
                 if self.config.verify and edge_config_of(self.model).geometry:
-                    return self._verified(problem, soft, WindowGeometry(problem, es.models,
-                                                                        self.config.unverified_threshold))
+                    geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
+                    if self.config.epipolar_ratio > 0:
+                        with stage("rounding"):
+                            clear = ~ambiguous_pairs(geometry.models, similarity, edge_config_of(self.model).normalization,
+                                                     problem.view_offsets, problem.keypoints, soft.rows, soft.cols,
+                                                     self.config.epipolar_ratio)
+                        soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
+                    return self._verified(problem, soft, geometry)
                 return soft, None
         return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                           top_k=self.config.top_k), None
