@@ -5,7 +5,9 @@ import torch
 
 from gcn_match_ros.descriptors import cosine_distance
 from gcn_match_ros.edges.ambiguity import BAND_PX, ambiguous_pairs, band_runner_up
+from gcn_match_ros.edges.consistency import WindowGeometry
 from gcn_match_ros.edges.verify import PairModel
+from gcn_match_ros.problem import Problem
 
 # cameras side by side (pure x translation): the epipolar line of (x, y) is the row y in the
 # other view, so "within BAND_PX of the line" means |y_b - y_a| <= BAND_PX
@@ -20,6 +22,13 @@ class _Blocks:
 
     def block(self, a, b, normalization):
         return torch.from_numpy(self.blocks[(a, b)])
+
+
+def _geometry(xa, xb, models):
+    """A window of the two views (descriptors unused: the cosines come from _Blocks)."""
+    problem = Problem(view_offsets=np.array([0, len(xa), len(xa) + len(xb)]), keypoints=np.concatenate([xa, xb]),
+                      descriptors=np.zeros((len(xa) + len(xb), 8), np.float32))
+    return WindowGeometry(problem, models)
 
 
 def _scene():
@@ -50,28 +59,25 @@ def test_band_edge_and_the_partner_itself_are_handled():
 
 def test_a_pair_is_ambiguous_when_its_rival_is_nearly_as_similar():
     xa, xb, sim = _scene()
-    keypoints = np.concatenate([xa, xb])
-    offsets = np.array([0, 3, 7])
+    geometry = _geometry(xa, xb, {(0, 1): PairModel(H=None, F=F_ROWS)})
     rows, cols = np.array([0, 2]), np.array([3, 6])            # (a0, b0) and (a2, b3)
-    models = {(0, 1): PairModel(H=None, F=F_ROWS)}
     ratio_at = cosine_distance(np.float64(np.float32(0.90))) / cosine_distance(np.float64(np.float32(0.85)))  # ~0.816
-    got = ambiguous_pairs(models, _Blocks({(0, 1): sim}), "l2", offsets, keypoints, rows, cols, ratio=0.8)
+    got = ambiguous_pairs(geometry, _Blocks({(0, 1): sim}), "l2", rows, cols, ratio=0.8)
     np.testing.assert_array_equal(got, [True, False])          # a lone pair has no rival
-    got = ambiguous_pairs(models, _Blocks({(0, 1): sim}), "l2", offsets, keypoints, rows, cols, ratio=ratio_at + 1e-6)
+    got = ambiguous_pairs(geometry, _Blocks({(0, 1): sim}), "l2", rows, cols, ratio=ratio_at + 1e-6)
     np.testing.assert_array_equal(got, [False, False])
     # a partner beaten on its own line is ambiguous at any ratio up to 1
     beaten = sim.copy()
     beaten[0, 1] = 0.95
-    got = ambiguous_pairs(models, _Blocks({(0, 1): beaten}), "l2", offsets, keypoints, rows, cols, ratio=1.0)
+    got = ambiguous_pairs(geometry, _Blocks({(0, 1): beaten}), "l2", rows, cols, ratio=1.0)
     np.testing.assert_array_equal(got, [True, False])
 
 
 def test_planar_missing_and_absent_models_judge_nothing():
     xa, xb, sim = _scene()
-    keypoints, offsets = np.concatenate([xa, xb]), np.array([0, 3, 7])
     rows, cols = np.array([0]), np.array([3])
     blocks = _Blocks({(0, 1): sim})
     for models in ({(0, 1): PairModel(H=np.eye(3), F=F_ROWS, planar=True)}, {(0, 1): None}, {}):
-        assert not ambiguous_pairs(models, blocks, "l2", offsets, keypoints, rows, cols, ratio=0.5).any()
-    assert ambiguous_pairs({(0, 1): PairModel(H=None, F=F_ROWS)}, blocks, "l2", offsets, keypoints,
+        assert not ambiguous_pairs(_geometry(xa, xb, models), blocks, "l2", rows, cols, ratio=0.5).any()
+    assert ambiguous_pairs(_geometry(xa, xb, {(0, 1): PairModel(H=None, F=F_ROWS)}), blocks, "l2",
                            np.zeros(0, np.int64), np.zeros(0, np.int64), ratio=0.8).shape == (0,)

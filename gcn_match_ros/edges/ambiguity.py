@@ -17,22 +17,20 @@ along b's line — is nearly as similar to it as its partner::
 same locus.
 
 Measured (benchmarks/results/geometric_eval.md, ``gcn:epipolar_ratio=0.8``): geometric
-precision castle-P19 0.80 -> 0.85 and development scenes 0.93 -> 0.95, at 1.5x / 1.7x
-nn-ransac's consistent pairs (from 1.9x / 1.8x). It is an option, off by default: where
+precision castle-P19 0.80 -> 0.87 and development scenes 0.93 -> 0.95, at 1.48x / 1.61x
+nn-ransac's consistent pairs (from 1.92x / 1.78x). It is an option, off by default: where
 descriptors barely tell points apart, every right pair has a rival on its line — on the
 generated small-object scenes (true-match cosine ~0.66, the rival's ~0.6, and the scene's
 points crowd the epipolar lines) it drops most right pairs (3 x 80 points F1 0.88 -> 0.28).
 """
 from __future__ import annotations
 
-from typing import Dict, Tuple
-
 import numba
 import numpy as np
 
 from ..descriptors import cosine_distance
 from ..similarity import DescriptorSimilarity
-from .verify import PairModel
+from .consistency import WindowGeometry
 
 __all__ = ["BAND_PX", "ambiguous_pairs", "band_runner_up"]
 
@@ -42,32 +40,27 @@ BAND_PX = 3.0
 
 
 @numba.njit(cache=True)
-def _band_two_best(F, xa, xb, sim, transposed, band_px):
-    """For each keypoint of view a (``transposed``: of view b), its two most similar keypoints
-    of the other view within ``BAND_PX`` of its epipolar line: (n,) index of the best (-1:
-    none), (n,) its cosine and (n,) the second's (-inf: none)."""
-    n_from = xb.shape[0] if transposed else xa.shape[0]
-    n_to = xa.shape[0] if transposed else xb.shape[0]
-    best_at = np.full(n_from, -1, np.int64)
-    best = np.full(n_from, -np.inf)
-    second = np.full(n_from, -np.inf)
-    for u in range(n_from):
-        if transposed:  # the line of b's point in view a: F^T [x, y, 1]
-            x, y = xb[u, 0], xb[u, 1]
-            l0 = F[0, 0] * x + F[1, 0] * y + F[2, 0]
-            l1 = F[0, 1] * x + F[1, 1] * y + F[2, 1]
-            l2 = F[0, 2] * x + F[1, 2] * y + F[2, 2]
-        else:           # the line of a's point in view b: F [x, y, 1]
-            x, y = xa[u, 0], xa[u, 1]
-            l0 = F[0, 0] * x + F[0, 1] * y + F[0, 2]
-            l1 = F[1, 0] * x + F[1, 1] * y + F[1, 2]
-            l2 = F[2, 0] * x + F[2, 1] * y + F[2, 2]
+def _band_two_best(F, x_from, x_to, sim, band_px):
+    """For each keypoint of one view, its two most similar keypoints of the other view within
+    ``band_px`` of its epipolar line F [x, y, 1].
+
+    Shapes: F (3, 3); x_from (n, 2); x_to (m, 2); sim (n, m) -> (n,) index of the best (-1:
+    none), (n,) its cosine and (n,) the second's (-inf: none).
+    """
+    n = x_from.shape[0]
+    best_at = np.full(n, -1, np.int64)
+    best = np.full(n, -np.inf)
+    second = np.full(n, -np.inf)
+    for u in range(n):
+        x, y = x_from[u, 0], x_from[u, 1]
+        l0 = F[0, 0] * x + F[0, 1] * y + F[0, 2]
+        l1 = F[1, 0] * x + F[1, 1] * y + F[1, 2]
+        l2 = F[2, 0] * x + F[2, 1] * y + F[2, 2]
         reach = band_px * np.sqrt(l0 * l0 + l1 * l1)
-        for k in range(n_to):
-            xk, yk = (xa[k, 0], xa[k, 1]) if transposed else (xb[k, 0], xb[k, 1])
-            if abs(l0 * xk + l1 * yk + l2) > reach:
+        for k in range(x_to.shape[0]):
+            if abs(l0 * x_to[k, 0] + l1 * x_to[k, 1] + l2) > reach:
                 continue
-            s = sim[k, u] if transposed else sim[u, k]
+            s = sim[u, k]
             if s > best[u]:
                 second[u] = best[u]
                 best[u], best_at[u] = s, k
@@ -85,32 +78,32 @@ def band_runner_up(F: np.ndarray, xa: np.ndarray, xb: np.ndarray, sim: np.ndarra
         xa, xb: (n_a, 2), (n_b, 2) keypoints of the two views.
         sim: (n_a, n_b) cosines between their descriptors.
         ia, ib: (M,) the pairs, indices into views a and b.
+        band_px: the band's half width around a line.
 
     Returns:
         (M,) float64: the largest cosine with the pair's other member of a keypoint k != ib[m]
-        of view b within ``BAND_PX`` of F x_a, or k != ia[m] of view a within ``BAND_PX`` of
+        of view b within ``band_px`` of F x_a, or k != ia[m] of view a within ``band_px`` of
         F^T x_b; -inf where the bands hold no other keypoint. Each keypoint's band is scanned
         once (its two best), whatever the number of pairs.
     """
     F, xa, xb = np.asarray(F, np.float64), np.asarray(xa, np.float64), np.asarray(xb, np.float64)
-    sim = np.ascontiguousarray(sim, np.float32)
-    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, sim, False, float(band_px))
-    in_a_at, in_a, in_a_second = _band_two_best(F, xa, xb, sim, True, float(band_px))
+    sim = np.asarray(sim, np.float32)
+    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, np.ascontiguousarray(sim), float(band_px))
+    in_a_at, in_a, in_a_second = _band_two_best(np.ascontiguousarray(F.T), xb, xa, np.ascontiguousarray(sim.T),
+                                                float(band_px))
     from_a = np.where(in_b_at[ia] == ib, in_b_second[ia], in_b[ia])   # other keypoints of b on a's line
     from_b = np.where(in_a_at[ib] == ia, in_a_second[ib], in_a[ib])   # other keypoints of a on b's line
     return np.maximum(from_a, from_b)
 
 
-def ambiguous_pairs(models: Dict[Tuple[int, int], PairModel], similarity: DescriptorSimilarity, normalization: str,
-                    view_offsets: np.ndarray, keypoints: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                    ratio: float) -> np.ndarray:
+def ambiguous_pairs(geometry: WindowGeometry, similarity: DescriptorSimilarity, normalization: str,
+                    rows: np.ndarray, cols: np.ndarray, ratio: float) -> np.ndarray:
     """Which pairs are ambiguous along their epipolar line (module docstring).
 
     Args:
-        models: (a, b), a < b -> the view pair's trusted model (or None); pairs of other view
-            pairs, and of planar models, are never ambiguous.
+        geometry: the window's trusted models; pairs of other view pairs, and of planar
+            models, are never ambiguous.
         similarity, normalization: the window's descriptor cosines, as the solver compares them.
-        view_offsets: (V + 1,); keypoints: (N, 2).
         rows, cols: (M,) global keypoint indices, view of rows < view of cols.
         ratio: the ratio at and above which a pair is ambiguous (> 1: only partners that another
             keypoint on the line beats by that much).
@@ -122,12 +115,11 @@ def ambiguous_pairs(models: Dict[Tuple[int, int], PairModel], similarity: Descri
     out = np.zeros(rows.shape[0], bool)
     if not rows.size:
         return out
-    offsets = np.asarray(view_offsets, np.int64)
-    view_a = np.searchsorted(offsets, rows, side="right") - 1
-    view_b = np.searchsorted(offsets, cols, side="right") - 1
-    xy = np.asarray(keypoints, np.float64)
-    for (a, b), model in models.items():
-        if model is None or model.F is None or model.planar:
+    offsets = geometry.problem.view_offsets
+    view_a, view_b = geometry.view_index[rows], geometry.view_index[cols]
+    xy = geometry.keypoints
+    for (a, b), model in geometry.models.items():
+        if model.F is None or model.planar:
             continue
         sel = np.flatnonzero((view_a == a) & (view_b == b))
         if not sel.size:

@@ -82,7 +82,7 @@ class GCNSolverConfig(SolverConfig):
             dropped when another keypoint along its epipolar line is nearly as similar to it
             (Lowe's ratio along the line at or above this, :mod:`gcn_match_ros.edges.ambiguity`):
             repetitions of a structure the cameras move along (castle-P19's facade: geometric
-            precision 0.80 -> 0.85 at 0.8). 0: off, the default: with weak descriptors every
+            precision 0.80 -> 0.87 at 0.8). 0: off, the default: with weak descriptors every
             right pair has a rival on its line (generated scenes: F1 0.88 -> 0.28).
     """
 
@@ -223,9 +223,8 @@ class GCNSolver(Solver):
                     geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
                     if self.config.epipolar_ratio > 0:
                         with stage("rounding"):
-                            clear = ~ambiguous_pairs(geometry.models, similarity, edge_config_of(self.model).normalization,
-                                                     problem.view_offsets, problem.keypoints, soft.rows, soft.cols,
-                                                     self.config.epipolar_ratio)
+                            clear = ~ambiguous_pairs(geometry, similarity, edge_config_of(self.model).normalization,
+                                                     soft.rows, soft.cols, self.config.epipolar_ratio)
                         soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
                     return self._verified(problem, soft, geometry)
                 return soft, None
