@@ -21,11 +21,11 @@ import torch
 
 from ..descriptors import describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs
-from ..edges.candidates import candidate_edges
+from ..edges.candidates import EdgeConfig, candidate_edges
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.rig_memory import RigMemory
-from ..edges.verify import MIN_SEEDS
+from ..edges.verify import EPIPOLAR_PX, MIN_SEEDS
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
@@ -84,6 +84,17 @@ class GCNSolverConfig(SolverConfig):
             repetitions of a structure the cameras move along (castle-P19's facade: geometric
             precision 0.80 -> 0.87 at 0.8). 0: off, the default: with weak descriptors every
             right pair has a rival on its line (generated scenes: F1 0.88 -> 0.28).
+        epipolar_fit_px: inlier threshold (Sampson distance, pixels) of the two-view epipolar
+            models, which also caps the tolerance within which a pair agrees with one
+            (:func:`gcn_match_ros.edges.verify.fit_pair`). Lower it for keypoints localised to
+            a fraction of a pixel (SIFT on real images, ~0.1-0.4 px): at 2 px a model also
+            explains repetitions shifted a few pixels off the true epipolar lines and tilts its
+            lines towards them (castle-P19: lines ~4 degrees off, a third of a view pair's pairs
+            wrong); at 0.5 px geometric precision rises from 0.93 to 0.96 on the development
+            scenes (1.66x nn-ransac's consistent pairs) and from 0.80 to 0.88 on castle-P19
+            (0.89 with ``rotation_cycles``; benchmarks/results/geometric_eval.md). 2 px (the
+            shipped models' training value) is the default: keypoints with ~1 px of noise (the
+            generated scenes) lose their models at 0.5 px (3-view F1 0.89 -> 0.28).
     """
 
     graph: str = "checkpoint"
@@ -98,6 +109,7 @@ class GCNSolverConfig(SolverConfig):
     chained_models: Optional[bool] = None
     rotation_cycles: bool = False
     epipolar_ratio: float = 0.0
+    epipolar_fit_px: float = EPIPOLAR_PX
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -110,6 +122,8 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
         if not self.epipolar_ratio >= 0.0:
             raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
+        if not self.epipolar_fit_px > 0.0:
+            raise ValueError(f"epipolar_fit_px must be > 0, got {self.epipolar_fit_px}")
         try:
             device = torch.device(self.device)
         except RuntimeError as exc:
@@ -196,6 +210,12 @@ class GCNSolver(Solver):
             return self.meta["graph_config"]
         return GRAPH_PRESETS[self.config.graph]
 
+    @property
+    def edge_config(self) -> EdgeConfig:
+        """The candidate edges the loaded model was trained on, with this solver's epipolar
+        fit threshold."""
+        return dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px)
+
     def describe(self) -> str:
         base = super().describe()
         return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
@@ -211,19 +231,19 @@ class GCNSolver(Solver):
             if has_edge_head(self.model):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
                 with stage("candidates"):
-                    es = candidate_edges(problem, edge_config_of(self.model), similarity, rig)
+                    es = candidate_edges(problem, self.edge_config, similarity, rig)
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
-                if self.config.descriptor_fallback and edge_config_of(self.model).geometry:
+                if self.config.descriptor_fallback and self.edge_config.geometry:
                     with stage("candidates"):
                         soft = _with_descriptor_matches(problem, soft, similarity)
-                if self.config.verify and edge_config_of(self.model).geometry:
+                if self.config.verify and self.edge_config.geometry:
                     geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
                     if self.config.epipolar_ratio > 0:
                         with stage("rounding"):
-                            clear = ~ambiguous_pairs(geometry, similarity, edge_config_of(self.model).normalization,
+                            clear = ~ambiguous_pairs(geometry, similarity, self.edge_config.normalization,
                                                      soft.rows, soft.cols, self.config.epipolar_ratio)
                         soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
                     return self._verified(problem, soft, geometry)
