@@ -257,15 +257,15 @@ class LandmarkTracker:
             consecutive = seen_ns[sel[0]] == self._previous_ns
             model, fitted_share = self._motion_models.get(cams, (None, 0.0)) if consecutive else (None, 0.0)
             support = _motion_support(model, fa, fb) if model is not None else None
-            if support is None or max(support[2:]) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
+            if support is None or max(support) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
                 # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
                 fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
                 model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
                 if model is None:
                     continue
                 support = _motion_support(model, fa, fb)
-                fitted_share = max(support[2:]) / fa.shape[0]
-            inliers_h, inliers_f = support[2:]
+                fitted_share = max(support) / fa.shape[0]
+            inliers_h, inliers_f = support
             if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
             if consecutive:
@@ -427,11 +427,10 @@ def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
     return np.where(won, best_lm, -1)
 
 
-def _motion_support(model, xa: np.ndarray, xb: np.ndarray):
-    """(H residuals, F residuals, pairs within H's threshold, pairs within F's) of a motion model
-    on pairs xa <-> xb (M, 2)."""
+def _motion_support(model, xa: np.ndarray, xb: np.ndarray) -> Tuple[int, int]:
+    """(pairs within H's threshold, pairs within F's) of a motion model on pairs xa <-> xb (M, 2)."""
     rh, rf = residuals(model, xa, xb)
-    return rh, rf, int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
+    return int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
 
 
 class PerCameraNNLinker:

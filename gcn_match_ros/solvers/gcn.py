@@ -230,28 +230,29 @@ class GCNSolver(Solver):
                                        graph=graph)
             if has_edge_head(self.model):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
+                edges = self.edge_config
                 with stage("candidates"):
-                    es = candidate_edges(problem, self.edge_config, similarity, rig)
+                    es = candidate_edges(problem, edges, similarity, rig)
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
-                if self.config.descriptor_fallback and self.edge_config.geometry:
+                if self.config.descriptor_fallback and edges.geometry:
                     with stage("candidates"):
                         soft = _with_descriptor_matches(problem, soft, similarity)
-                if self.config.verify and self.edge_config.geometry:
+                if self.config.verify and edges.geometry:
                     geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
                     if self.config.epipolar_ratio > 0:
                         with stage("rounding"):
-                            clear = ~ambiguous_pairs(geometry, similarity, self.edge_config.normalization,
+                            clear = ~ambiguous_pairs(geometry, similarity, edges.normalization,
                                                      soft.rows, soft.cols, self.config.epipolar_ratio)
                         soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
-                    return self._verified(problem, soft, geometry)
+                    return self._verified(soft, geometry)
                 return soft, None
         return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                           top_k=self.config.top_k), None
 
-    def _verified(self, problem: Problem, soft: SoftMatches, geometry: WindowGeometry):
+    def _verified(self, soft: SoftMatches, geometry: WindowGeometry):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
         with stage("rounding"):
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
