@@ -7,6 +7,9 @@ The correspondence graph (:func:`gcn_match_ros.graph.build_graph`), the candidat
 block once, on first use, and hands the same tensor to every later reader. Blocks are kept
 up to ``budget_bytes`` (least recently used go first), so a huge window's memory stays
 bounded; a block evicted and asked for again is computed again (``recomputed`` counts it).
+Two threads may read one window's blocks at once (the ``gcn`` solver's graph and candidate
+edges, :func:`gcn_match_ros.threads.alongside`): the cache is guarded by a lock, the products
+run outside it.
 
 Different normalizations are different similarities: the shipped models build their graph
 from L2-normalised descriptors and score candidates from RootSIFT ones, so such a window
@@ -15,6 +18,7 @@ has two blocks per view pair, each computed once.
 from __future__ import annotations
 
 import collections
+import threading
 from typing import Dict, Tuple
 
 import numba
@@ -49,6 +53,7 @@ class DescriptorSimilarity:
         self._blocks: "collections.OrderedDict[Key, torch.Tensor]" = collections.OrderedDict()
         self._seen: set = set()
         self._bytes = 0
+        self._lock = threading.Lock()
         self.computed = 0
         self.recomputed = 0
 
@@ -60,7 +65,8 @@ class DescriptorSimilarity:
         if d is None:
             with stage("similarity"):
                 d = torch.from_numpy(normalize_descriptors(self._descriptors, normalization))
-            self._normalized[normalization] = d
+            with self._lock:
+                d = self._normalized.setdefault(normalization, d)
         return d
 
     def view(self, v: int, normalization: str) -> torch.Tensor:
@@ -73,13 +79,22 @@ class DescriptorSimilarity:
         if i > j:
             return self.block(j, i, normalization).T
         key = (normalization, int(i), int(j))
-        blk = self._blocks.get(key)
-        if blk is not None:
-            self._blocks.move_to_end(key)
-            return blk
+        with self._lock:
+            blk = self._blocks.get(key)
+            if blk is not None:
+                self._blocks.move_to_end(key)
+                return blk
         di, dj = self.view(i, normalization), self.view(j, normalization)
         with stage("similarity"):
             blk = di @ dj.T
+        with self._lock:
+            return self._keep(key, blk)
+
+    def _keep(self, key: Key, blk: torch.Tensor) -> torch.Tensor:
+        """Cache a block just computed (the lock held); the copy another thread cached first wins."""
+        cached = self._blocks.get(key)
+        if cached is not None:
+            return cached
         self.computed += 1
         if key in self._seen:
             self.recomputed += 1
@@ -125,7 +140,7 @@ def most_similar(sim: np.ndarray, k_row: int, k_col: int) -> Tuple[np.ndarray, n
     return _most_similar(np.asarray(sim, np.float32), int(k_row), int(k_col))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _most_similar(sim, k_row, k_col):
     n, m = sim.shape
     row_val = np.full((n, k_row), -np.inf, np.float32)

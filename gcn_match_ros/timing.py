@@ -13,7 +13,7 @@ import contextvars
 import time
 from typing import Dict, Iterator, List, Optional
 
-__all__ = ["StageTimes", "stage"]
+__all__ = ["StageTimes", "stage", "add_to_active"]
 
 _ACTIVE: "contextvars.ContextVar[Optional[StageTimes]]" = contextvars.ContextVar("gcn_match_ros_stages",
                                                                                   default=None)
@@ -34,6 +34,11 @@ class StageTimes:
             yield self
         finally:
             _ACTIVE.reset(token)
+
+    def add(self, seconds: Dict[str, float]) -> None:
+        """Add stage times measured by another recorder (e.g. of work on another thread)."""
+        for name, value in seconds.items():
+            self.seconds[name] = self.seconds.get(name, 0.0) + value
 
     def _enter(self) -> None:
         self._stack.append([time.perf_counter(), 0.0])
@@ -58,3 +63,13 @@ def stage(name: str) -> Iterator[None]:
         yield
     finally:
         times._exit(name)
+
+
+def add_to_active(seconds: Dict[str, float]) -> None:
+    """Add stage times measured on another thread to this context's recorder, if one is active.
+
+    Such stages overlap the recorder's own, so a solve's stages may then add up to more than
+    its wall time."""
+    times = _ACTIVE.get()
+    if times is not None:
+        times.add(seconds)

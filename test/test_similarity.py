@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.similarity: descriptor similarity blocks, computed once per view pair and shared."""
 import dataclasses
+import threading
 
 import numpy as np
 import pytest
@@ -116,3 +117,24 @@ def test_most_similar_equals_a_stable_sort_of_rows_and_columns():
             np.testing.assert_array_equal(values, np.take_along_axis(block, order, 1))
     with pytest.raises(ValueError, match="k_row"):
         most_similar(x, 30, 1)
+
+
+def test_two_threads_reading_blocks_at_once_get_each_block_computed_once():
+    problem = permuted_views_problem(n_views=4, n_points=30, noise=0.2)
+    sim = DescriptorSimilarity(problem)
+    barrier = threading.Barrier(2)
+    got = {}
+
+    def read(name):
+        barrier.wait()
+        got[name] = [sim.block(i, j, norm) for norm in NORMALIZATIONS for i in range(4) for j in range(i + 1, 4)]
+
+    threads = [threading.Thread(target=read, args=(n,)) for n in ("a", "b")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    # the two readers hold the same tensors: a block computed twice (both asked at once) is kept once
+    assert all(x is y for x, y in zip(got["a"], got["b"]))
+    assert sim.computed == len(NORMALIZATIONS) * 6 and sim.recomputed == 0
+    assert sim.cached_bytes == sum(x.numel() * 4 for x in got["a"])

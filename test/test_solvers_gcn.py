@@ -200,3 +200,29 @@ def test_epipolar_fit_px_suits_precise_keypoints_only(one_torch_thread):
                      for spec in ("gcn", "gcn:epipolar_fit_px=0.5")]
     assert f1[0.1][1] > f1[0.1][0] - 0.02 and f1[0.1][1] > 0.9
     assert f1[1.0][1] < f1[1.0][0] - 0.3
+
+
+def test_candidates_beside_the_network_change_nothing(one_torch_thread):
+    """parallel (the default) computes the candidate edges on a second thread: the same pairs,
+    scores and tracks as on one thread, for windows alone and for a stream's windows, whose rig
+    memory the second thread uses."""
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.stream import StreamState, solve_window
+
+    assert solvers.create("gcn").config.parallel
+    rng = np.random.default_rng([5, 1])
+    problems = [synthetic.random_scene_problem(synthetic.rome16k(4, n_points=120), rng) for _ in range(3)]
+    out = {}
+    for spec in ("gcn", "gcn:parallel=false"):
+        solver, state = solvers.create(spec), StreamState()
+        alone = [solver.solve(p) for p in problems]
+        rig = dataclasses.replace(problems[0], camera_ids=("cam0", "cam1", "cam2", "cam3"))
+        streamed = [solve_window(solver, rig, state, k * 10**8, landmarks=False)[0] for k in range(3)]
+        out[spec] = (alone + streamed, state.rig.reused)
+        assert "candidates" in alone[0].timings and "network" in alone[0].timings
+    (par, par_reused), (seq, seq_reused) = out.values()
+    assert par_reused == seq_reused > 0
+    for a, b in zip(par, seq):
+        np.testing.assert_array_equal(a.track, b.track)
+        np.testing.assert_array_equal(a.pair_rows, b.pair_rows)
+        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)

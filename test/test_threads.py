@@ -1,9 +1,14 @@
-"""Tests of gcn_match_ros.threads: numpy's BLAS on one thread, torch's pool untouched."""
+"""Tests of gcn_match_ros.threads: numpy's BLAS on one thread, torch's pool untouched; work
+beside the caller on a second thread."""
+import threading
+
 import numpy as np
+import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import single_blas_thread
+from gcn_match_ros.threads import alongside, single_blas_thread
+from gcn_match_ros.timing import StageTimes, stage
 
 
 def test_single_blas_thread_limits_numpys_blas_and_leaves_torch_alone():
@@ -18,3 +23,63 @@ def test_single_blas_thread_limits_numpys_blas_and_leaves_torch_alone():
         assert torch.get_num_threads() == torch_threads
     finally:
         original.restore_original_limits()
+
+
+def test_alongside_runs_on_a_second_thread_and_adds_its_stages_to_the_callers():
+    started = threading.Event()
+
+    def work(x):
+        started.set()
+        with stage("beside"):
+            return x + 1, threading.current_thread()
+
+    times = StageTimes()
+    with times.recording():
+        with alongside(work, 41) as pending:
+            assert started.wait(5)  # it runs before anyone asks for it
+            with stage("here"):
+                pass
+            value, thread = pending.result()
+    assert value == 42 and thread is not threading.current_thread()
+    assert set(times.seconds) == {"beside", "here"}
+
+
+def test_alongside_without_parallel_runs_on_asking_on_the_callers_thread():
+    calls = []
+    with alongside(lambda: calls.append(threading.current_thread()) or "done", parallel=False) as pending:
+        assert calls == []
+        assert pending.result() == "done" and pending.result() == "done"
+    assert calls == [threading.current_thread()]
+
+
+def test_alongside_raises_the_functions_error_at_result():
+    def fails():
+        raise ValueError("bad window")
+
+    with alongside(fails) as pending:
+        with pytest.raises(ValueError, match="bad window"):
+            pending.result()
+
+
+def test_the_block_waits_for_the_function_even_when_the_body_raises():
+    finished = threading.Event()
+    release = threading.Event()
+
+    def slow():
+        release.wait(5)
+        finished.set()
+
+    with pytest.raises(RuntimeError, match="body"):
+        with alongside(slow):
+            release.set()
+            raise RuntimeError("body")
+    assert finished.is_set()  # e.g. a stream's rig memory is free for the next window
+
+
+def test_alongside_called_from_the_second_thread_runs_inline_instead_of_waiting_for_itself():
+    def outer():
+        with alongside(lambda: threading.current_thread()) as inner:
+            return inner.result() is threading.current_thread()
+
+    with alongside(outer) as pending:
+        assert pending.result() is True

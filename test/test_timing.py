@@ -2,7 +2,7 @@
 import threading
 import time
 
-from gcn_match_ros.timing import StageTimes, stage
+from gcn_match_ros.timing import StageTimes, add_to_active, stage
 
 NAP = 0.01  # seconds; only lower bounds and sums are checked, never how long a sleep took
 
@@ -70,3 +70,14 @@ def test_other_threads_do_not_record_into_this_recorder():
         with stage("this_thread"):
             pass
     assert set(times.seconds) == {"this_thread"}
+
+
+def test_stages_timed_on_another_thread_are_added_to_the_active_recorder_only():
+    times = StageTimes()
+    add_to_active({"elsewhere": 1.0})  # no recorder: nothing to add to
+    with times.recording():
+        with stage("here"):
+            pass
+        add_to_active({"elsewhere": 0.25})
+        add_to_active({"elsewhere": 0.25, "here": 1.0})
+    assert times.seconds["elsewhere"] == 0.5 and times.seconds["here"] >= 1.0

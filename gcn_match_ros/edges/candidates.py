@@ -295,7 +295,7 @@ def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, p
     return np.concatenate(out_a).astype(np.int64), np.concatenate(out_b).astype(np.int64)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _best_near_lines(sim, la, lb, xa, xb, px):
     """For each keypoint of a, the most similar keypoint of b within ``px`` of its epipolar line
     and with a within ``px`` of b's line (:func:`gcn_match_ros.geometry.epipolar_distance_matrix`
@@ -345,7 +345,7 @@ def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
     return views_seen / (V - 2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _common_neighbour_views(indptr, indices, view, rows, cols, V):
     """Per edge (rows[m], cols[m]) the number of distinct views among the two keypoints' common
     neighbours in the CSR graph (indptr, indices); edges join different views, so each common

@@ -149,7 +149,8 @@ class Solver(abc.ABC):
         descriptor_kinds: (dimension, binary) of the descriptors the solver takes; () = any
             (a learned model takes only its training descriptors).
         needs_graph: :meth:`solve` builds the correspondence graph for :meth:`match` (False:
-            the method makes its own candidates and gets ``graph=None``).
+            ``match`` gets ``graph=None`` and builds what it needs itself, e.g. its own
+            candidates, or the graph beside other work).
         uses_rig_memory: :meth:`match` takes ``rig=`` (:class:`gcn_match_ros.edges.rig_memory.RigMemory`)
             and :meth:`solve` passes the stream's.
     """

@@ -32,6 +32,7 @@ from ..learn.model import embed_problem
 from ..node_features import feature_dim
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
+from ..threads import alongside
 from ..timing import stage
 from .base import SoftMatches, Solver, SolverConfig
 from .registry import register
@@ -95,6 +96,9 @@ class GCNSolverConfig(SolverConfig):
             (0.89 with ``rotation_cycles``; benchmarks/results/geometric_eval.md). 2 px (the
             shipped models' training value) is the default: keypoints with ~1 px of noise (the
             generated scenes) lose their models at 0.5 px (3-view F1 0.89 -> 0.28).
+        parallel: compute the candidate edges on a second thread while the graph and the network
+            run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
+            one thread.
     """
 
     graph: str = "checkpoint"
@@ -110,6 +114,7 @@ class GCNSolverConfig(SolverConfig):
     rotation_cycles: bool = False
     epipolar_ratio: float = 0.0
     epipolar_fit_px: float = EPIPOLAR_PX
+    parallel: bool = True
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -144,6 +149,7 @@ class GCNSolver(Solver):
 
     name = "gcn"
     Config = GCNSolverConfig
+    needs_graph = False  # match builds it, beside the candidate edges
     uses_rig_memory = True
 
     def __init__(self, config=None, **settings) -> None:
@@ -220,37 +226,44 @@ class GCNSolver(Solver):
         base = super().describe()
         return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
 
-    def match(self, problem: Problem, graph: CorrespondenceGraph, similarity: DescriptorSimilarity,
+    def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity,
               rig: Optional[RigMemory] = None):
-        if problem.n_keypoints == 0:
-            return SoftMatches.from_graph(graph), None
-        with torch.inference_mode():
-            with stage("network"):
-                emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
-                                       graph=graph)
-            if has_edge_head(self.model):
+        edges = self.edge_config if has_edge_head(self.model) and problem.n_keypoints else None
+        # The candidate edges need neither the graph nor the network: with parallel, they are
+        # computed on the second thread meanwhile (threads.alongside; waiting for them counts
+        # as "match").
+        with alongside(_timed_candidates, problem, edges, similarity, rig,
+                       parallel=self.config.parallel and edges is not None) as candidates:
+            if graph is None:
+                with stage("graph"):
+                    graph = build_graph(problem, self.graph_config, similarity)
+            if problem.n_keypoints == 0:
+                return SoftMatches.from_graph(graph), None
+            with torch.inference_mode():
+                with stage("network"):
+                    emb, _ = embed_problem(self.model, problem, self.graph_config, self.meta["feature_config"],
+                                           graph=graph)
+                if edges is None:
+                    return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
+                                                      top_k=self.config.top_k), None
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
-                edges = self.edge_config
-                with stage("candidates"):
-                    es = candidate_edges(problem, edges, similarity, rig)
+                es = candidates.result()
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
-                if self.config.descriptor_fallback and edges.geometry:
-                    with stage("candidates"):
-                        soft = _with_descriptor_matches(problem, soft, similarity)
-                if self.config.verify and edges.geometry:
-                    geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
-                    if self.config.epipolar_ratio > 0:
-                        with stage("rounding"):
-                            clear = ~ambiguous_pairs(geometry, similarity, edges.normalization,
-                                                     soft.rows, soft.cols, self.config.epipolar_ratio)
-                        soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
-                    return self._verified(soft, geometry)
-                return soft, None
-        return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
-                                          top_k=self.config.top_k), None
+        if self.config.descriptor_fallback and edges.geometry:
+            with stage("candidates"):
+                soft = _with_descriptor_matches(problem, soft, similarity)
+        if self.config.verify and edges.geometry:
+            geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
+            if self.config.epipolar_ratio > 0:
+                with stage("rounding"):
+                    clear = ~ambiguous_pairs(geometry, similarity, edges.normalization,
+                                             soft.rows, soft.cols, self.config.epipolar_ratio)
+                soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
+            return self._verified(soft, geometry)
+        return soft, None
 
     def _verified(self, soft: SoftMatches, geometry: WindowGeometry):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
@@ -258,6 +271,12 @@ class GCNSolver(Solver):
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
                                           self.chained_models, self.config.rotation_cycles)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
+
+
+def _timed_candidates(problem: Problem, edges: EdgeConfig, similarity: DescriptorSimilarity,
+                      rig: Optional[RigMemory]):
+    with stage("candidates"):
+        return candidate_edges(problem, edges, similarity, rig)
 
 
 def _with_descriptor_matches(problem: Problem, soft: SoftMatches, similarity: DescriptorSimilarity) -> SoftMatches:
