@@ -223,13 +223,16 @@ def plot_reliability(thresholds: Sequence[float], shares: Mapping[str, Sequence[
     return _save(fig, path, dpi=120)
 
 
-def plot_stage_times(windows: Mapping[str, Mapping[str, Mapping[str, float]]], path, title: str = "") -> Path:
+def plot_stage_times(windows: Mapping[str, Mapping[str, Mapping[str, float]]], path, title: str = "",
+                     wall: Optional[Mapping[str, Mapping[str, float]]] = None) -> Path:
     """Where each window's time goes, to a PNG: one panel per window size (its own linear
     scale), one horizontal bar per solver, split into its stages.
 
     Args:
         windows: window label (e.g. "4 x 500") -> bar label (e.g. "gcn (stream)") -> stage ->
             milliseconds, stages in drawing order (the same names in every bar).
+        wall: the same labels -> the solve's wall time, milliseconds, written at each bar
+            (with its stages' sum where work on two threads made that larger); None: the sum.
     """
     plt = _plt()
     n_bars = max(len(bars) for bars in windows.values())
@@ -246,11 +249,14 @@ def plot_stage_times(windows: Mapping[str, Mapping[str, Mapping[str, float]]], p
                                  label=name if name not in colors else None)
             colors.setdefault(name, bars_drawn.patches[0].get_facecolor())
             left += ms
-        for yi, total in zip(y, left):
-            ax.text(total, yi, f" {total:.0f} ms", va="center", fontsize=8)
+        walls = [None if wall is None else wall[window][label] for label in bars]
+        for yi, total, wall_ms in zip(y, left, walls):
+            text = f" {total:.0f} ms" if wall_ms is None or total <= 1.05 * wall_ms else \
+                f" {wall_ms:.0f} ms wall ({total:.0f} ms on two threads)"
+            ax.text(total, yi, text, va="center", fontsize=8)
         ax.set_yticks(y)
         ax.set_yticklabels(list(bars), fontsize=8)
-        ax.set_xlim(0, 1.15 * left.max())
+        ax.set_xlim(0, (1.15 if wall is None else 1.5) * left.max())
         ax.set_title(window, fontsize=9, loc="left")
         ax.grid(alpha=0.3, axis="x")
     axes[-1, 0].set_xlabel("milliseconds per window (stages stacked)")

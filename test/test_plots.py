@@ -191,3 +191,5 @@ def test_plot_stage_times(tmp_path):
                            "gcn (stream)": {"similarity": 6.0, "graph": 9.0, "network": 6.0}},
                "8 x 500": {"nn": {"similarity": 12.0, "graph": 16.0, "network": 0.0}}}
     assert_png(plots.plot_stage_times(windows, tmp_path / "stages.png", title="per stage"))
+    wall = {"4 x 500": {"nn": 7.0, "gcn (stream)": 14.0}, "8 x 500": {"nn": 28.0}}  # gcn: two threads
+    assert_png(plots.plot_stage_times(windows, tmp_path / "stages_wall.png", wall=wall))

@@ -67,8 +67,9 @@ def scene_problem():
     ("spectral", {"graph", "similarity", "match"}),  # it rounds inside its match
     ("nn-ransac", {"similarity", "geometry", "match", "rounding"}),  # no input graph: its own candidates
     ("gcn:parallel=false", {"graph", "similarity", "match", "rounding", "network", "candidates", "edge_head",
-                            "geometry"}),
-    ("gcn", {"graph", "similarity", "match", "rounding", "network", "candidates", "edge_head", "geometry"}),
+                            "geometry", "waiting"}),
+    ("gcn", {"graph", "similarity", "match", "rounding", "network", "candidates", "edge_head", "geometry",
+             "waiting"}),
 ])
 def test_result_timings_hold_the_stages_of_the_solve(scene_problem, one_torch_thread, spec, stages):
     result = solvers.create(spec).solve(scene_problem)

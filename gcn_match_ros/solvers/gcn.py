@@ -230,8 +230,8 @@ class GCNSolver(Solver):
               rig: Optional[RigMemory] = None):
         edges = self.edge_config if has_edge_head(self.model) and problem.n_keypoints else None
         # The candidate edges need neither the graph nor the network: with parallel, they are
-        # computed on the second thread meanwhile (threads.alongside; waiting for them counts
-        # as "match").
+        # computed on the second thread meanwhile (threads.alongside); the stage "waiting" is
+        # the time this thread then idles for them.
         with alongside(_timed_candidates, problem, edges, similarity, rig,
                        parallel=self.config.parallel and edges is not None) as candidates:
             if graph is None:
@@ -247,7 +247,8 @@ class GCNSolver(Solver):
                     return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                                       top_k=self.config.top_k), None
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
-                es = candidates.result()
+                with stage("waiting"):
+                    es = candidates.result()
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):
