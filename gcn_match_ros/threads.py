@@ -10,8 +10,9 @@ that solve (the matcher node, ``gcn-match``) call :func:`single_blas_thread` onc
 
 :func:`alongside` runs one function on the process's second thread while the caller goes on:
 the ``gcn`` solver's candidate edges (two-view fits, compiled loops that release the GIL) beside
-its graph and network (torch, which releases it too). On 2 cores a 4 x 500 window's graph,
-network and candidates took 30 instead of 43-49 ms (benchmarks/results/stage_breakdown.md).
+its graph and network (torch, which releases it too). On 2 cores: the matcher node's 4 x 500
+p95 latency 125 -> 80 ms (benchmarks/results/node_latency.md), the offline stream solve 71 -> 63
+ms (stage_breakdown.md; the two threads slow each other, so the gain varies between runs).
 """
 from __future__ import annotations
 
