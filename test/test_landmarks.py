@@ -188,6 +188,52 @@ def test_best_per_unit_known_answers():
     assert loose.tolist() == [2, 1, 7, -1]
 
 
+def test_best_per_unit_follows_its_rule_with_many_ties():
+    """The one-pass kernel against the rule spelt out: per unit, each landmark's best member
+    score; the best landmark (lowest index on ties) and the best score of any other."""
+    from gcn_match_ros.landmarks import _best_per_unit
+
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        k, n_units = int(rng.integers(0, 30)), int(rng.integers(1, 6))
+        unit, lm = rng.integers(0, n_units, k), rng.integers(0, 5, k)
+        score = (rng.integers(0, 4, k) / 4).astype(np.float32)   # scores collide often
+        best, best_score = _best_per_unit(unit, lm, score, n_units, ratio=0.95)
+        for u in range(n_units):
+            per_lm = {}
+            for l, s in zip(lm[unit == u], score[unit == u]):
+                per_lm[int(l)] = max(per_lm.get(int(l), -1.0), float(s))
+            if not per_lm:
+                assert best[u] == -1
+                continue
+            top = max(per_lm.values())
+            winner = min(l for l, s in per_lm.items() if s == top)
+            others = [s for l, s in per_lm.items() if l != winner]
+            passes = not others or cosine_distance(top) < 0.95 * cosine_distance(max(others))
+            assert best[u] == (winner if passes else -1)
+            assert best_score[u] == (np.float32(top) if passes else 0.0)
+
+
+def test_candidates_on_two_threads_are_those_of_one(monkeypatch):
+    import gcn_match_ros.landmarks as landmarks_module
+
+    problems, _, stamps = rig_sequence(RigSequenceConfig(n_cameras=3, n_windows=3, n_points=600), rng=3)
+    tracker = LandmarkTracker()
+    for p, stamp in zip(problems[:2], stamps):
+        tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, p.gt_track, stamp)
+    p = problems[2]
+    desc = (p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)).astype(np.float32)
+    view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
+    column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
+    found = {}
+    for split in (0, 10**12):   # every window split in two halves; none split
+        monkeypatch.setattr(landmarks_module, "SPLIT_PRODUCTS", split)
+        found[split] = tracker._candidates(column, p.keypoints, desc)
+    assert found[0][0].size > 500
+    for a, b in zip(found[0], found[10**12]):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_a_continuation_against_the_motion_of_the_others_is_refused():
     """Window 2 moves every point 6 px right; one point is gone and a look-alike (its descriptor)
     sits 25 px below where it should be: within the image gate, against the motion."""
