@@ -41,7 +41,7 @@ def test_ok_with_no_drops_and_every_camera_recent(clock):
         stats.frame_received("cam1")
     stats.frame_received("cam1")
     stats.window_published(latency=0.030, compute=0.010)
-    stats.window_published(latency=0.050, compute=0.020)
+    stats.window_published(latency=0.050, compute=0.020, association=0.004)
     st, values = report(stats, extra={"solver": "nn"})
     assert st.level == DiagnosticStatus.OK and st.message == "ok"
     assert (st.name, st.hardware_id) == ("matcher_node: matching", "/matcher_node")
@@ -53,6 +53,7 @@ def test_ok_with_no_drops_and_every_camera_recent(clock):
     assert values["windows/s"] == "2.00" and values["windows published"] == "2"
     assert values["latency p50 [ms]"] == "40.0" and values["latency max [ms]"] == "50.0"
     assert values["compute p50 [ms]"] == "15.0"
+    assert values["landmark association p50 [ms]"] == "4.00"   # of the windows that associated
     assert values["worker"] == "idle" and values["window pending"] == "False" and values["descriptor dim"] == "128"
     assert values["frames dropped total"] == "0" and values["windows dropped total"] == "0"
     assert not any(k.startswith(("frames dropped ", "windows dropped ")) and "total" not in k for k in values)

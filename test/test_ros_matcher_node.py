@@ -224,6 +224,7 @@ def test_matcher_windows_score_high_against_ground_truth(harness_factory, solver
     _, values = h.wait_diag(lambda v: v.get("windows published") == str(n_windows))
     assert values["solver"].startswith(solver) and values["windows dropped total"] == "0"
     assert float(values["latency p95 [ms]"]) > 0 and values["frames received cam2"] == str(n_windows)
+    assert 0 < float(values["landmark association p50 [ms]"]) < float(values["compute p50 [ms]"])
 
 
 def test_matcher_without_landmarks_publishes_tracks_and_no_ids(harness_factory):
@@ -241,6 +242,7 @@ def test_matcher_without_landmarks_publishes_tracks_and_no_ids(harness_factory):
         assert m.track_count > 30 and len(m.landmark_ids) == 0 and len(m.landmark_ages) == 0
     _, values = h.wait_diag(lambda v: v.get("windows published") == "2")
     assert values["landmarks live"] == "0" and values["landmarks born"] == "0"
+    assert values["landmark association p50 [ms]"] == "nan"
 
 
 def test_matcher_counts_bad_input_and_keeps_running(harness_factory):

@@ -42,7 +42,7 @@ class MatcherStats:
         self.window_drops: collections.Counter = collections.Counter()
         self.truncated = 0
         self.published = 0
-        self.recent: collections.deque = collections.deque()  # (monotonic, latency s, compute s)
+        self.recent: collections.deque = collections.deque()  # (monotonic, latency s, compute s, association s)
         # values at the previous report, for rates
         self._prev_time = time.monotonic()
         self._prev_received = collections.Counter(self.received)
@@ -53,9 +53,11 @@ class MatcherStats:
         self.received[camera] += 1
         self.last_received[camera] = time.monotonic()
 
-    def window_published(self, latency: float, compute: float) -> None:
+    def window_published(self, latency: float, compute: float, association: float = float("nan")) -> None:
+        """One window out: its latency and compute seconds, and the part of the compute its
+        landmark association took (NaN: none associated)."""
         self.published += 1
-        self.recent.append((time.monotonic(), latency, compute))
+        self.recent.append((time.monotonic(), latency, compute, association))
 
     def report(self, name: str, hardware_id: str, assembler_drops: Mapping[str, int], descriptor_dim: int,
                busy: bool, pending: bool, stale_after: float, extra: Optional[Mapping[str, str]] = None,
@@ -67,6 +69,7 @@ class MatcherStats:
             self.recent.popleft()
         lat = [r[1] for r in self.recent]
         comp = [r[2] for r in self.recent]
+        association = [r[3] for r in self.recent if math.isfinite(r[3])]
         elapsed = max(mono - self._prev_time, 1e-6)
         rates = {c: (self.received[c] - self._prev_received[c]) / elapsed for c in self.cameras}
         frame_drops = collections.Counter(assembler_drops) + self.conversion_drops
@@ -94,6 +97,7 @@ class MatcherStats:
             "latency max [ms]": _fmt(max(lat) if lat else float("nan"), 1e3),
             "compute p50 [ms]": _fmt(_percentile(comp, 50), 1e3),
             "compute p95 [ms]": _fmt(_percentile(comp, 95), 1e3),
+            "landmark association p50 [ms]": _fmt(_percentile(association, 50), 1e3, digits=2),
             "worker": "busy" if busy else "idle",
             "window pending": str(pending),
             "descriptor dim": str(descriptor_dim),

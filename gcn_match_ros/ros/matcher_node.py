@@ -430,7 +430,8 @@ class _Matcher:
         period = (newest - self._last_window_ns) * 1e-9 if self._last_window_ns is not None else 0.0
         self._last_window_ns = newest
         with self._lock:
-            self._stats.window_published(float(msg.latency_seconds), float(msg.total_seconds))
+            self._stats.window_published(float(msg.latency_seconds), float(msg.total_seconds),
+                                         float("nan") if landmarks is None else landmarks.seconds)
             self._budget.solved(float(msg.total_seconds), period, degraded)
 
     # -- diagnostics (executor thread) ----------------------------------------------------
