@@ -21,8 +21,7 @@ Usage::
 
     ./run.sh python benchmarks/node_latency.py                      # default solver (gcn if its model exists)
     ./run.sh python benchmarks/node_latency.py --solver nn --cameras 4 --keypoints 500 --duration 20
-    # the cost of the landmarks' temporal association: the same without it, against the default
-    # (benchmarks/results/node_latency_landmarks.md holds both tables and their ratio)
+    # without the landmarks' temporal association (benchmarks/node_latency_landmarks.py compares both)
     ./run.sh python benchmarks/node_latency.py --landmarks false --cameras 2 4 --out /tmp/no_landmarks.md
 """
 from __future__ import annotations
@@ -66,7 +65,7 @@ def _parser():
     return p
 
 
-def _default_solver() -> str:
+def default_solver() -> str:
     try:
         from gcn_match_ros.solvers.gcn import DEFAULT_CHECKPOINT
         if Path(DEFAULT_CHECKPOINT).is_file():
@@ -76,7 +75,7 @@ def _default_solver() -> str:
     return "nn"
 
 
-def _machine_extra() -> list:
+def machine_extra() -> list:
     """What the shared machine line lacks here: the system and the load average now."""
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     return [f"{platform.system()} {platform.release()}",
@@ -216,17 +215,26 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
         compute=float(np.median(comp)) if comp.size else float("nan"),
         throughput=len(stamps) / span, windows_dropped=windows_dropped, frames_dropped=frames_dropped,
         frames_lost=max(0, frames_sent - frames_in) if diag_end else None,
-        budget=diag_end.get("keypoint budget", "?"), degraded=diag_end.get("windows degraded", "?"))
+        budget=diag_end.get("keypoint budget", "?"), degraded=diag_end.get("windows degraded", "?"),
+        association=float(diag_end.get("landmark association p50 [ms]", "nan")) * 1e-3)
     return result
+
+
+def _fmt_ms(seconds: float) -> str:
+    return "–" if not np.isfinite(seconds) else f"{1e3 * seconds:.1f}"
 
 
 def _fmt_drops(d: dict) -> str:
     return ", ".join(f"{k} {v}" for k, v in sorted(d.items())) or "0"
 
 
-def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
-    solver = args.solver or _default_solver()
+def ros_environment(args):
+    """The environment of the node processes and of this one (this machine only, a domain of its
+    own, the large shared-memory segment unless ``args.default_shm``); sets this process's too.
+
+    Returns:
+        (env, domain id, a line naming the Fast DDS set-up).
+    """
     from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, use_large_shm
 
     env = dict(os.environ)
@@ -242,9 +250,16 @@ def main(argv=None) -> int:
     shm = ("Fast DDS profile " + env[FASTDDS_PROFILE_ENV]) if env.get(FASTDDS_PROFILE_ENV) else \
         "Fast DDS defaults (512 KiB shared-memory segment)"
     os.environ.pop("ROS_LOCALHOST_ONLY", None)
+    return env, domain, shm
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    solver = args.solver or default_solver()
+    env, domain, shm = ros_environment(args)
     import torch
 
-    extra = _machine_extra()
+    extra = machine_extra()
     print(f"machine: {describe_machine(torch.get_num_threads(), extra)}", flush=True)
     note = "" if args.solver or solver == "gcn" else " (gcn model not found: fell back to nn)"
     print(f"solver: {solver}{note}; {args.rate:g} Hz, {args.duration:g} s measured per configuration, "
@@ -259,15 +274,16 @@ def main(argv=None) -> int:
                   f"{r['throughput']:.1f} windows/s, {r['received']}/{r['sent']} windows, node drops "
                   f"{_fmt_drops(r['windows_dropped'])}", flush=True)
     header = ("| cameras | keypoints/view | windows received / sent | partial | latency p50 [ms] | p95 [ms] | "
-              "max [ms] | node compute p50 [ms] | throughput [windows/s] | windows dropped by the node | "
-              "frames lost / dropped | keypoint budget at the end / windows degraded |\n"
-              "|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "max [ms] | node compute p50 [ms] | of it landmark association [ms] | throughput [windows/s] | "
+              "windows dropped by the node | frames lost / dropped | keypoint budget at the end / windows degraded |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [header]
     for r in rows:
         lost = "?" if r["frames_lost"] is None else str(r["frames_lost"])
         lines.append(f"| {r['cameras']} | {r['keypoints']} | {r['received']} / {r['sent']} | {r['partial']} | "
                      f"{1e3 * r['p50']:.1f} | {1e3 * r['p95']:.1f} | {1e3 * r['max']:.1f} | "
-                     f"{1e3 * r['compute']:.1f} | {r['throughput']:.1f} | {_fmt_drops(r['windows_dropped'])} | "
+                     f"{1e3 * r['compute']:.1f} | {_fmt_ms(r['association'])} | {r['throughput']:.1f} | "
+                     f"{_fmt_drops(r['windows_dropped'])} | "
                      f"{lost} / {_fmt_drops(r['frames_dropped'])} | {r['budget']} / {r['degraded']} |")
     table = "\n".join(lines)
     goal = [r for r in rows if (r["cameras"], r["keypoints"]) == GOAL[:2]]
