@@ -100,6 +100,12 @@ def _frames(n_cams: int, n_kp: int, seed: int = 0):
     return msgs
 
 
+def max_keypoints(n_kp: int) -> int:
+    """The node's ``max_keypoints`` in a run of ``n_kp`` keypoints per view: every keypoint, and
+    never below the node's default (so degrading under load starts from the same budget)."""
+    return max(n_kp, 1024)
+
+
 def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -115,7 +121,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     cams = [f"cam{v}" for v in range(n_cams)]
     cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args", "-r", f"__ns:={ns}",
            "-p", f"cameras:=[{','.join(cams)}]", "-p", f"solver:={solver}", "-p", f"input_qos:={args.input_qos}",
-           "-p", f"max_keypoints:={max(n_kp, 1024)}", "-p", "diagnostics_period:=0.5",
+           "-p", f"max_keypoints:={max_keypoints(n_kp)}", "-p", "diagnostics_period:=0.5",
            "-p", f"landmarks:={args.landmarks}",
            "--log-level", "warn"]
     log = tempfile.NamedTemporaryFile("w+", prefix="node_latency-", suffix=".log", delete=False)

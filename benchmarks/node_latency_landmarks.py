@@ -65,7 +65,7 @@ def compare(n_cams: int, n_kp: int, args, solver: str, env, domain) -> dict:
             print(f"  {n_cams} x {n_kp}, round {k + 1}, landmarks {'on ' if landmarks else 'off'}: compute p50 "
                   f"{1e3 * r['compute']:.1f} ms, latency p50 {1e3 * r['p50']:.1f} / p95 {1e3 * r['p95']:.1f} ms, "
                   f"budget {r['budget']}", flush=True)
-    full = str(max(n_kp, 1024))
+    full = str(node_latency.max_keypoints(n_kp))
     med = {on: {q: float(np.median([r[q] for r in runs[on]])) for q in ("compute", "p50", "p95", "association")}
            for on in runs}
     return {"cameras": n_cams, "keypoints": n_kp, "median": med,
