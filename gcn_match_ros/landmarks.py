@@ -28,8 +28,8 @@ The cost: one descriptor product (keypoints x landmarks), then one compiled pass
 keeps each keypoint's two best landmarks through the gate (the gate is tested only where a
 landmark could still enter them), the two halves of a large window's keypoints on two threads;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
-as dense matrices). 4 x 500 keypoints, 445 landmarks: 6.7 ms a window (9.7 ms on one thread
-with the earlier sort-based best per unit).
+as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
+with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
 
 Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
