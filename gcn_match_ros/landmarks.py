@@ -182,7 +182,7 @@ class LandmarkTracker:
                                        np.float32(cfg.cross_similarity))
 
         half = n // 2 if n * self._ids.size >= SPLIT_PRODUCTS else n
-        with alongside(two_best, half, n) as second_half:
+        with alongside(two_best, half, n, parallel=half < n) as second_half:   # unsplit: an empty rest, here
             first_half = two_best(0, half)
         first, second, first_score, second_score = (np.concatenate(parts)
                                                     for parts in zip(first_half, second_half.result()))
