@@ -29,25 +29,26 @@ keeps each keypoint's two best landmarks through the gate (the gate is tested on
 landmark could still enter them), the two halves of a large window's keypoints on two threads;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
 as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
-with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
+with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md). The
+candidates need no tracks (:meth:`LandmarkTracker.prepare`): where the solve leaves its second
+thread spare they are found there while the window is solved (:func:`gcn_match_ros.stream.solve_window`).
 
 Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, Iterator, Sequence, Tuple
 
 import cv2
 import numba
 import numpy as np
-import scipy.sparse
 
 from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, fit_pair, residuals, trusted_support
 from .threads import alongside
 
-__all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
+__all__ = ["LandmarkConfig", "LandmarkTracker", "PreparedWindow", "PerCameraNNLinker"]
 
 #: a continuation agrees with the motion model within this many times the model's tolerance
 MOTION_SLACK = 2.0
@@ -89,6 +90,22 @@ class LandmarkConfig:
     verify_motion: bool = True
 
 
+@dataclasses.dataclass(frozen=True)
+class PreparedWindow:
+    """What :meth:`LandmarkTracker.prepare` found for one window, for its :meth:`~LandmarkTracker.update`.
+
+    Shapes: column (N,) int64 each keypoint's camera column; desc (N, D) float32 unit
+    descriptors; candidates: (keypoint, landmark, similarity) (K,) each, or None when there was
+    no landmark (or no keypoint).
+    """
+
+    serial: int
+    stamp_ns: int
+    column: np.ndarray
+    desc: np.ndarray
+    candidates: "Tuple[np.ndarray, np.ndarray, np.ndarray] | None"
+
+
 class LandmarkTracker:
     """Persistent landmark ids over a stream of windows (module docstring).
 
@@ -109,18 +126,19 @@ class LandmarkTracker:
         self._before_ns = np.zeros(0, np.int64)  # time of that sighting (-1: none)
         self._motion_models = {}          # (last camera, camera) column -> (motion model, share explained when fitted)
         self._previous_ns = None          # the last window's time
+        self._prepared = 0                # serial of the latest prepare() (PreparedWindow.serial)
         self.born = 0
         self.retired = 0
 
     def __len__(self) -> int:
         return int(self._ids.size)
 
-    def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
-               descriptors: np.ndarray, track: np.ndarray, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
-        """Associate one solved window; returns (N,) landmark id per keypoint (-1: none) and
-        (N,) the landmark's age in nanoseconds (since it was born; -1: none)."""
-        cfg = self.config
-        n = keypoints.shape[0]
+    def prepare(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+                descriptors: np.ndarray, stamp_ns: int) -> "PreparedWindow":
+        """The part of :meth:`update` that needs no tracks: retire the landmarks too old at
+        ``stamp_ns`` and find each keypoint's candidate landmarks. It can run while the window
+        is solved (:func:`gcn_match_ros.stream.solve_window`); the tracker must not change
+        before the :meth:`update` it is passed to."""
         view = np.repeat(np.arange(len(camera_ids)), np.diff(view_offsets))
         desc = descriptors.astype(np.float32)
         desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
@@ -129,18 +147,40 @@ class LandmarkTracker:
         self._retire(stamp_ns)
         self._camera_columns(camera_ids)
         column = np.array([self._cams[c] for c in camera_ids], np.int64)[view]   # (N,) camera column
-        units = _units(track)
-        sizes = np.array([m.size for m in units])
-        best_lm = np.full(len(units), -1)
-        best_score = np.zeros(len(units))
-        if self._ids.size and n:
-            unit_of = np.empty(n, np.int64)
-            unit_of[np.concatenate(units)] = np.repeat(np.arange(len(units)), sizes)
-            member, lm, score = self._candidates(column, keypoints, desc)
-            best_lm, best_score = _best_per_unit(unit_of[member], lm, score, len(units), cfg.ratio)
+        candidates = (self._candidates(column, keypoints, desc) if self._ids.size and desc.shape[0]
+                      else None)
+        self._prepared += 1
+        return PreparedWindow(self._prepared, int(stamp_ns), column, desc, candidates)
+
+    def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+               descriptors: np.ndarray, track: np.ndarray, stamp_ns: int,
+               prepared: "PreparedWindow | None" = None) -> Tuple[np.ndarray, np.ndarray]:
+        """Associate one solved window; returns (N,) landmark id per keypoint (-1: none) and
+        (N,) the landmark's age in nanoseconds (since it was born; -1: none).
+
+        ``prepared``: this window's :meth:`prepare` (the same arguments), if it already ran.
+
+        Raises:
+            ValueError: ``prepared`` is not the tracker's latest, or of another stamp.
+        """
+        if prepared is None:
+            prepared = self.prepare(camera_ids, view_offsets, keypoints, descriptors, stamp_ns)
+        elif prepared.serial != self._prepared or prepared.stamp_ns != stamp_ns:
+            raise ValueError("prepared window is stale: prepare() ran again since, or for another stamp")
+        self._prepared += 1   # one update per prepare
+        cfg = self.config
+        n = keypoints.shape[0]
+        column, desc = prepared.column, prepared.desc
+        units = _Units(track)
+        sizes = units.sizes
+        best_lm = np.full(sizes.size, -1)
+        best_score = np.zeros(sizes.size)
+        if prepared.candidates is not None:
+            member, lm, score = prepared.candidates
+            best_lm, best_score = _best_per_unit(units.of_keypoint[member], lm, score, sizes.size, cfg.ratio)
             if cfg.verify_motion:
                 claimed = _one_to_one(best_lm, best_score) >= 0
-                best_lm = self._motion_checked(best_lm, claimed, units, sizes, column, keypoints)
+                best_lm = self._motion_checked(best_lm, claimed, units, column, keypoints)
         # units take landmarks one-to-one, best score first; a track left without one is a new point
         best_lm = _one_to_one(best_lm, best_score)
         order = np.argsort(-best_score, kind="stable")
@@ -149,13 +189,13 @@ class LandmarkTracker:
         founders = order[~winners & (sizes[order] >= 2)]
         landmark = np.full(n, -1, np.int64)   # per keypoint: its landmark's index (-1: none)
         if continued.size:
-            members = np.concatenate([units[u] for u in continued])
+            members = units.members(continued)
             self._sighted(best_lm[continued], members, sizes[continued], column, keypoints, desc, stamp_ns)
             landmark[members] = np.repeat(best_lm[continued], sizes[continued])
         if founders.size:
-            first = self._found([units[u] for u in founders], column, keypoints, desc, stamp_ns)
-            landmark[np.concatenate([units[u] for u in founders])] = np.repeat(first + np.arange(founders.size),
-                                                                               sizes[founders])
+            members = units.members(founders)
+            first = self._found(members, sizes[founders], column, keypoints, desc, stamp_ns)
+            landmark[members] = np.repeat(first + np.arange(founders.size), sizes[founders])
         has = landmark >= 0
         ids, ages = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
         ids[has], ages[has] = self._ids[landmark[has]], stamp_ns - self._born_ns[landmark[has]]
@@ -192,7 +232,7 @@ class LandmarkTracker:
         keep = np.isfinite(best)
         return member[keep], lm[keep], best[keep]
 
-    def _motion_checked(self, best_lm, claimed, units, sizes, column, keypoints):
+    def _motion_checked(self, best_lm, claimed, units, column, keypoints):
         """The continuations that agree with the image motion since the last sightings.
 
         Each continuation pairs a member's pixel with its landmark's last sighting in a camera;
@@ -226,7 +266,8 @@ class LandmarkTracker:
         cont = np.flatnonzero(best_lm >= 0)
         if cont.size == 0:
             return best_lm
-        rows = np.concatenate([units[u] for u in cont])
+        sizes = units.sizes
+        rows = units.members(cont)
         unit_of_row = np.repeat(cont, sizes[cont])
         row_column = column[rows]
         last = self._xy[best_lm[unit_of_row]]                              # (R, cameras, 2)
@@ -242,8 +283,8 @@ class LandmarkTracker:
                            return_inverse=True)
         key = key.ravel()
         bridges = self._bridges(best_lm[unit_of_row], row_column, keypoints[rows], pair_cam, seen_ns)
-        votes = np.zeros(len(units), np.int64)   # per unit: pairs that agree minus pairs that do not
-        checked = np.zeros(len(units), np.int64)  # per unit: pairs under a trusted model
+        votes = np.zeros(sizes.size, np.int64)   # per unit: pairs that agree minus pairs that do not
+        checked = np.zeros(sizes.size, np.int64)  # per unit: pairs under a trusted model
         by_key = np.argsort(key, kind="stable")
         groups = np.split(by_key, np.cumsum(np.bincount(key))[:-1])   # pairs of each key, ascending
         bridge_of = [bridges.get((int(pair_cam[g[0]]), int(row_column[pair_row[g[0]]]), int(seen_ns[g[0]])))
@@ -253,7 +294,7 @@ class LandmarkTracker:
         sized = [f.size + (0 if b is None else b[0].shape[0]) >= MIN_SEEDS for f, b in zip(fitted_on, bridge_of)]
         groups, fitted_on, bridge_of = ([a for a, ok in zip(x, sized) if ok] for x in (groups, fitted_on, bridge_of))
         moved = np.linalg.norm(xb - xa, axis=1)
-        still = [bool(f.size and np.median(moved[f]) <= RANSAC_PX) for f in fitted_on]
+        still = [bool(f.size and _median(moved[f]) <= RANSAC_PX) for f in fitted_on]
         # frame pairs whose image held still first (a standing robot; on the sample bags an image
         # seen again by the next camera): the identity is their model, exact and free, and F
         # would be degenerate there. Then fitted models, only where a continuation is still
@@ -296,7 +337,7 @@ class LandmarkTracker:
                 (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
             np.add.at(checked, unit_of_row[pair_row[sel]], 1)
-        gap = np.zeros(len(units), bool)
+        gap = np.zeros(sizes.size, bool)
         gap[cont] = self._seen_ns[best_lm[cont]] != self._previous_ns
         return np.where((votes < 0) | ((checked == 0) & ((sizes == 1) | gap)), -1, best_lm)
 
@@ -357,29 +398,24 @@ class LandmarkTracker:
         """Update the landmarks ``js`` (K,) with their units at once: the units' members one
         unit after another in ``rows``, ``sizes`` (K,) members each."""
         w = self.config.summary_weight
-        # each unit's descriptor sum as one sparse (units x keypoints) product: 8x faster than reduceat
-        members = scipy.sparse.csr_matrix((np.ones(rows.size, np.float32), rows, np.r_[0, np.cumsum(sizes)]),
-                                          shape=(sizes.size, desc.shape[0]))
-        unit_mean = (members @ desc) / sizes[:, None]
-        mean = (1 - w) * self._desc[js] + w * unit_mean
+        mean = (1 - w) * self._desc[js] + w * _unit_means(rows, sizes, desc)
         self._desc[js] = mean / np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
         self._xy_before[js], self._before_ns[js] = self._xy[js], self._seen_ns[js]
         self._seen_ns[js] = stamp_ns
         self._xy[js] = np.nan
         self._xy[np.repeat(js, sizes), column[rows]] = keypoints[rows]
 
-    def _found(self, tracks, column, keypoints, desc, stamp_ns) -> int:
-        """New landmarks for ``tracks`` (member arrays), ids in that order; returns the first's index."""
-        k = len(tracks)
-        summary = np.empty((k, desc.shape[1]), np.float32)
+    def _found(self, rows, sizes, column, keypoints, desc, stamp_ns) -> int:
+        """New landmarks for K tracks, ids in their order: their members one track after another
+        in ``rows``, ``sizes`` (K,) members each. Returns the first new landmark's index."""
+        k = sizes.size
+        summary = _unit_means(rows, sizes, desc)
+        summary /= np.maximum(np.linalg.norm(summary, axis=1, keepdims=True), 1e-12)
         xy = np.full((k, len(self._cams), 2), np.nan)
-        for t, members in enumerate(tracks):
-            mean = desc[members].mean(0)
-            summary[t] = mean / max(float(np.linalg.norm(mean)), 1e-12)
-            xy[t, column[members]] = keypoints[members]   # a track has one keypoint per camera
+        xy[np.repeat(np.arange(k), sizes), column[rows]] = keypoints[rows]   # a track has one keypoint per camera
         first = self._ids.size
         self._ids = np.concatenate([self._ids, self._next_id + np.arange(k)])
-        self._desc = np.concatenate([self._desc, summary])
+        self._desc = np.concatenate([self._desc, summary.astype(np.float32)])
         self._born_ns = np.concatenate([self._born_ns, np.full(k, stamp_ns, np.int64)])
         self._seen_ns = np.concatenate([self._seen_ns, np.full(k, stamp_ns, np.int64)])
         self._xy = np.concatenate([self._xy, xy])
@@ -390,16 +426,56 @@ class LandmarkTracker:
         return first
 
 
-def _units(track: np.ndarray) -> List[np.ndarray]:
-    """The window's tracks (members, view order) and then every keypoint in no track, alone."""
-    track = np.asarray(track, np.int64)
-    order = np.argsort(track, kind="stable")
-    t = track[order]
-    in_track = t >= 0
-    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]] & in_track)
-    ends = np.r_[starts[1:], np.flatnonzero(in_track)[-1] + 1] if starts.size else starts
-    units = [order[s:e] for s, e in zip(starts, ends)]
-    return units + list(np.flatnonzero(track < 0)[:, None])   # (1,) row views: no array made per keypoint
+@numba.njit(cache=True)
+def _unit_means(rows: np.ndarray, sizes: np.ndarray, desc: np.ndarray) -> np.ndarray:
+    """(K, D) float64 the mean descriptor of each of K units whose members are ``rows``, one unit
+    after another, ``sizes`` (K,) each (float32 sums in member order). Compiled: a scipy sparse
+    product took 0.1 ms at 2 x 500, reduceat 0.3 ms."""
+    out = np.empty((sizes.size, desc.shape[1]), np.float64)
+    total = np.zeros(desc.shape[1], np.float32)
+    r = 0
+    for u in range(sizes.size):
+        total[:] = 0
+        for _ in range(sizes[u]):
+            total += desc[rows[r]]
+            r += 1
+        out[u] = total / sizes[u]
+    return out
+
+
+class _Units:
+    """A window's units: its tracks (members in view order, tracks by id) and then every keypoint
+    in no track, alone; stored as one (N,) array of members, unit after unit.
+
+    Attributes:
+        sizes: (U,) members per unit; of_keypoint: (N,) each keypoint's unit.
+    """
+
+    def __init__(self, track: np.ndarray) -> None:
+        track = np.asarray(track, np.int64)
+        order = np.argsort(track, kind="stable")
+        t = track[order]
+        lone = int(np.searchsorted(t, 0))           # keypoints in no track sort first
+        tracked = t[lone:]
+        starts = np.flatnonzero(np.r_[True, tracked[1:] != tracked[:-1]]) if tracked.size else tracked
+        self._members = np.concatenate([order[lone:], order[:lone]])
+        self._starts = np.r_[starts, tracked.size + np.arange(lone + 1)]   # (U + 1,)
+        self.sizes = np.diff(self._starts)
+        self.of_keypoint = np.empty(track.size, np.int64)
+        self.of_keypoint[self._members] = np.repeat(np.arange(self.sizes.size), self.sizes)
+
+    def __len__(self) -> int:
+        return int(self.sizes.size)
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        """Each unit's members."""
+        return iter(np.split(self._members, self._starts[1:-1]))
+
+    def members(self, units: np.ndarray) -> np.ndarray:
+        """The members of ``units`` (K,), one unit after another: (sizes[units].sum(),)."""
+        sizes = self.sizes[units]
+        first = np.repeat(self._starts[units] - np.cumsum(sizes) + sizes, sizes)
+        return self._members[first + np.arange(first.size)]
 
 
 def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units: int, ratio: float):
@@ -463,6 +539,13 @@ def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
     return np.where(won, best_lm, -1)
 
 
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array, without its per-call overhead (30 us)."""
+    n = x.size
+    middle = np.partition(x, [(n - 1) // 2, n // 2])
+    return 0.5 * (middle[(n - 1) // 2] + middle[n // 2])
+
+
 def _motion_support(model, xa: np.ndarray, xb: np.ndarray) -> Tuple[int, int]:
     """(pairs within H's threshold, pairs within F's) of a motion model on pairs xa <-> xb (M, 2)."""
     rh, rf = residuals(model, xa, xb)
@@ -502,7 +585,7 @@ class PerCameraNNLinker:
             linked[rows[ok]] = prev_ids[best[ok]]
         ids = np.full(n, -1, np.int64)
         used = set()
-        for members in _units(track):
+        for members in _Units(track):
             cand = [int(linked[m]) for m in members if linked[m] >= 0 and int(linked[m]) not in used]
             if cand:
                 ids[members] = cand[0]
