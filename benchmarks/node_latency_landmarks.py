@@ -120,10 +120,10 @@ Each configuration ran {args.rounds} times with the node's `landmarks` parameter
 {args.rounds} times on, alternating which went first; the node in its own process, frames as in
 node_latency.py (the same still synthetic scene every 100 ms: every landmark continues).
 Medians over the rounds; "ratio" = on / off of those medians (the goal's measure); "per round" =
-each round's compute ratio; "of it landmark association" = the association's time after the solve
-in the node (its /diagnostics p50 over the last 10 s of each on run; candidate landmarks found
-beside the solve are not in it), and "within the on runs" = compute / (compute - association): the
-ratio without the run-to-run drift, but also without any indirect cost or the work beside the solve. Timings depend on what else runs: mind the load average above.
+each round's compute ratio; "of it landmark association" = the association's own time in the
+node (its /diagnostics p50 over the last 10 s of each on run), and "within the on runs" = compute
+/ (compute - association): the ratio without the run-to-run drift, but also without any
+indirect cost. Timings depend on what else runs: mind the load average above.
 
 {table}
 

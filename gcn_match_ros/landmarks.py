@@ -29,9 +29,7 @@ keeps each keypoint's two best landmarks through the gate (the gate is tested on
 landmark could still enter them), the two halves of a large window's keypoints on two threads;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
 as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
-with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md). The
-candidates need no tracks (:meth:`LandmarkTracker.prepare`): where the solve leaves its second
-thread spare they are found there while the window is solved (:func:`gcn_match_ros.stream.solve_window`).
+with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
 
 Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
@@ -48,7 +46,7 @@ from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, fit_pair, residuals, trusted_support
 from .threads import alongside
 
-__all__ = ["LandmarkConfig", "LandmarkTracker", "PreparedWindow", "PerCameraNNLinker"]
+__all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
 
 #: a continuation agrees with the motion model within this many times the model's tolerance
 MOTION_SLACK = 2.0
@@ -90,22 +88,6 @@ class LandmarkConfig:
     verify_motion: bool = True
 
 
-@dataclasses.dataclass(frozen=True)
-class PreparedWindow:
-    """What :meth:`LandmarkTracker.prepare` found for one window, for its :meth:`~LandmarkTracker.update`.
-
-    Shapes: column (N,) int64 each keypoint's camera column; desc (N, D) float32 unit
-    descriptors; candidates: (keypoint, landmark, similarity) (K,) each, or None when there was
-    no landmark (or no keypoint).
-    """
-
-    serial: int
-    stamp_ns: int
-    column: np.ndarray
-    desc: np.ndarray
-    candidates: "Tuple[np.ndarray, np.ndarray, np.ndarray] | None"
-
-
 class LandmarkTracker:
     """Persistent landmark ids over a stream of windows (module docstring).
 
@@ -126,19 +108,18 @@ class LandmarkTracker:
         self._before_ns = np.zeros(0, np.int64)  # time of that sighting (-1: none)
         self._motion_models = {}          # (last camera, camera) column -> (motion model, share explained when fitted)
         self._previous_ns = None          # the last window's time
-        self._prepared = 0                # serial of the latest prepare() (PreparedWindow.serial)
         self.born = 0
         self.retired = 0
 
     def __len__(self) -> int:
         return int(self._ids.size)
 
-    def prepare(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
-                descriptors: np.ndarray, stamp_ns: int) -> "PreparedWindow":
-        """The part of :meth:`update` that needs no tracks: retire the landmarks too old at
-        ``stamp_ns`` and find each keypoint's candidate landmarks. It can run while the window
-        is solved (:func:`gcn_match_ros.stream.solve_window`); the tracker must not change
-        before the :meth:`update` it is passed to."""
+    def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+               descriptors: np.ndarray, track: np.ndarray, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Associate one solved window; returns (N,) landmark id per keypoint (-1: none) and
+        (N,) the landmark's age in nanoseconds (since it was born; -1: none)."""
+        cfg = self.config
+        n = keypoints.shape[0]
         view = np.repeat(np.arange(len(camera_ids)), np.diff(view_offsets))
         desc = descriptors.astype(np.float32)
         desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
@@ -147,36 +128,12 @@ class LandmarkTracker:
         self._retire(stamp_ns)
         self._camera_columns(camera_ids)
         column = np.array([self._cams[c] for c in camera_ids], np.int64)[view]   # (N,) camera column
-        candidates = (self._candidates(column, keypoints, desc) if self._ids.size and desc.shape[0]
-                      else None)
-        self._prepared += 1
-        return PreparedWindow(self._prepared, int(stamp_ns), column, desc, candidates)
-
-    def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
-               descriptors: np.ndarray, track: np.ndarray, stamp_ns: int,
-               prepared: "PreparedWindow | None" = None) -> Tuple[np.ndarray, np.ndarray]:
-        """Associate one solved window; returns (N,) landmark id per keypoint (-1: none) and
-        (N,) the landmark's age in nanoseconds (since it was born; -1: none).
-
-        ``prepared``: this window's :meth:`prepare` (the same arguments), if it already ran.
-
-        Raises:
-            ValueError: ``prepared`` is not the tracker's latest, or of another stamp.
-        """
-        if prepared is None:
-            prepared = self.prepare(camera_ids, view_offsets, keypoints, descriptors, stamp_ns)
-        elif prepared.serial != self._prepared or prepared.stamp_ns != stamp_ns:
-            raise ValueError("prepared window is stale: prepare() ran again since, or for another stamp")
-        self._prepared += 1   # one update per prepare
-        cfg = self.config
-        n = keypoints.shape[0]
-        column, desc = prepared.column, prepared.desc
         units = _Units(track)
         sizes = units.sizes
         best_lm = np.full(sizes.size, -1)
         best_score = np.zeros(sizes.size)
-        if prepared.candidates is not None:
-            member, lm, score = prepared.candidates
+        if self._ids.size and n:
+            member, lm, score = self._candidates(column, keypoints, desc)
             best_lm, best_score = _best_per_unit(units.of_keypoint[member], lm, score, sizes.size, cfg.ratio)
             if cfg.verify_motion:
                 claimed = _one_to_one(best_lm, best_score) >= 0

@@ -21,16 +21,8 @@ import numpy as np
 from .edges.rig_memory import RigMemory
 from .landmarks import LandmarkTracker
 from .problem import Problem, Result
-from .threads import alongside
 
 __all__ = ["StreamState", "WindowLandmarks", "solve_window", "solve_stream"]
-
-#: a solve that waited less than this for its second thread left it spare. Measured offline
-#: (landmarks' cost per window, still scenes): gcn 2 x 500 (no wait) 2.3 -> 1.6 ms beside the
-#: solve; 4 x 500 and larger (waits of 3 ms and more) no gain, the candidates then only delay
-#: the solve's own work there; nn (nothing on that thread) 2.4 -> 2.6 ms (its Python
-#: contends with theirs)
-SPARE_WAITING_S = 0.5e-3
 
 
 @dataclasses.dataclass
@@ -40,14 +32,10 @@ class StreamState:
     Attributes:
         rig: two-view models by camera pair (windows whose problems name their cameras).
         landmarks: the live landmarks and their ids.
-        spare_second_thread: the last window's solve ran work on the second thread
-            (:mod:`gcn_match_ros.threads`) and did not wait for it: the next window's landmark
-            candidates are found there, beside the solve.
     """
 
     rig: RigMemory = dataclasses.field(default_factory=RigMemory)
     landmarks: LandmarkTracker = dataclasses.field(default_factory=LandmarkTracker)
-    spare_second_thread: bool = False
 
 
 @dataclasses.dataclass
@@ -55,9 +43,7 @@ class WindowLandmarks:
     """The landmark of every keypoint of one window.
 
     Shapes: ids (N,) int64 (-1: none); ages_ns (N,) int64 nanoseconds since the landmark was
-    first seen (-1: none). ``seconds``: the association's time after the solve, what it adds to the
-    window's latency (candidate landmarks found beside the solve, :attr:`StreamState.spare_second_thread`,
-    are not in it).
+    first seen (-1: none). ``seconds``: the time the association took (after the solve).
     """
 
     ids: np.ndarray
@@ -81,21 +67,15 @@ def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
         landmarks: False: no association at all (None instead of the landmarks; the tracker
             is not touched), for consumers that need only the window's own tracks.
     """
+    result = solver.solve(problem, stream=state)
     if not landmarks:
-        return solver.solve(problem, stream=state), None
+        return result, None
     if problem.camera_ids is None:
         none = np.full(problem.n_keypoints, -1, np.int64)
-        return solver.solve(problem, stream=state), WindowLandmarks(none, none.copy())
-    tracker = state.landmarks
-    # the association's track-free part (candidate landmarks) beside the solve where the solve
-    # leaves its second thread spare; else after it, on both threads (the same ids either way)
-    with alongside(tracker.prepare, problem.camera_ids, problem.view_offsets, problem.keypoints,
-                   problem.descriptors, int(stamp_ns), parallel=state.spare_second_thread) as prepared:
-        result = solver.solve(problem, stream=state)
-    state.spare_second_thread = result.timings.get("waiting", SPARE_WAITING_S) < SPARE_WAITING_S
+        return result, WindowLandmarks(none, none.copy())
     start = time.perf_counter()
-    ids, ages = tracker.update(problem.camera_ids, problem.view_offsets, problem.keypoints, problem.descriptors,
-                               result.track, int(stamp_ns), prepared.result())
+    ids, ages = state.landmarks.update(problem.camera_ids, problem.view_offsets, problem.keypoints,
+                                      problem.descriptors, result.track, int(stamp_ns))
     return result, WindowLandmarks(ids, ages, time.perf_counter() - start)
 
 

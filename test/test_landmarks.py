@@ -151,17 +151,20 @@ def test_sparse_association_follows_the_dense_rule():
     for p, stamp in zip(problems, stamps):
         track = np.where(p.gt_track >= 0, p.gt_track, -1)
         track[rng.random(track.size) < 0.2] = -1          # lone keypoints too
-        prepared = tracker.prepare(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, stamp)
-        if prepared.candidates is not None:
+        if len(tracker):
             units = _Units(track)
-            member, lm, score = prepared.candidates
+            desc = p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)
+            view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
+            tracker._camera_columns(p.camera_ids)
+            column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
+            member, lm, score = tracker._candidates(column, p.keypoints, desc.astype(np.float32))
             best, _ = _best_per_unit(units.of_keypoint[member], lm, score, len(units), tracker.config.ratio)
             dense = _dense_choice(tracker, p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, list(units))
             agree = best == dense
             # float64 here vs float32 there may flip a pair sitting exactly on a threshold
             assert agree.mean() > 0.995 and (best >= 0).sum() > 100, (agree.mean(), (best >= 0).sum())
             compared += 1
-        tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, track, stamp, prepared)
+        tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, track, stamp)
     assert compared == 7
 
 
@@ -217,31 +220,16 @@ def test_candidates_on_two_threads_are_those_of_one(monkeypatch):
     for p, stamp in zip(problems[:2], stamps):
         tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, p.gt_track, stamp)
     p = problems[2]
+    desc = (p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)).astype(np.float32)
+    view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
+    column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
     found = {}
     for split in (0, 10**12):   # every window split in two halves; none split
         monkeypatch.setattr(landmarks_module, "SPLIT_PRODUCTS", split)
-        found[split] = tracker.prepare(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors,
-                                       stamps[2]).candidates
+        found[split] = tracker._candidates(column, p.keypoints, desc)
     assert found[0][0].size > 500
     for a, b in zip(found[0], found[10**12]):
         np.testing.assert_array_equal(a, b)
-
-
-def test_an_update_takes_only_its_own_latest_preparation():
-    problems, _, stamps = rig_sequence(RigSequenceConfig(n_cameras=2, n_windows=2, n_points=200), rng=5)
-    p = problems[0]
-    window = (p.camera_ids, p.view_offsets, p.keypoints, p.descriptors)
-    tracker = LandmarkTracker()
-    stale = tracker.prepare(*window, stamps[0])
-    latest = tracker.prepare(*window, stamps[0])
-    with pytest.raises(ValueError, match="stale"):
-        tracker.update(*window, p.gt_track, stamps[0], stale)
-    with pytest.raises(ValueError, match="stale"):
-        tracker.update(*window, p.gt_track, stamps[1], latest)   # prepared for another stamp
-    ids, _ = tracker.update(*window, p.gt_track, stamps[0], latest)
-    assert (ids >= 0).sum() == (p.gt_track >= 0).sum()
-    with pytest.raises(ValueError, match="stale"):
-        tracker.update(*window, p.gt_track, stamps[0], latest)   # one update per preparation
 
 
 def test_units_are_tracks_by_id_then_lone_keypoints():

@@ -55,8 +55,7 @@ class MatcherStats:
 
     def window_published(self, latency: float, compute: float, association: float = float("nan")) -> None:
         """One window out: its latency and compute seconds, and the part of the compute its
-        landmark association took after the solve (NaN: none associated;
-        :attr:`gcn_match_ros.stream.WindowLandmarks.seconds`)."""
+        landmark association took (NaN: none associated)."""
         self.published += 1
         self.recent.append((time.monotonic(), latency, compute, association))
 
