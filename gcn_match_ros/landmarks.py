@@ -272,16 +272,19 @@ class LandmarkTracker:
             cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
             consecutive = seen_ns[sel[0]] == self._previous_ns
             model, fitted_share = self._motion_models.get(cams, (None, 0.0)) if consecutive else (None, 0.0)
-            support = _motion_support(model, fa, fb) if model is not None else None
-            if support is None or max(support) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
+            # residuals once per model on the frame pair's pairs (the fitted ones are among them)
+            # and the bridge pairs
+            fitted_in_sel = pair_claimed[sel]
+            checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge) if model is not None else None
+            if checks is None or max(checks.support) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
                 # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
                 fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
                 model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
                 if model is None:
                     continue
-                support = _motion_support(model, fa, fb)
-                fitted_share = max(support) / fa.shape[0]
-            inliers_h, inliers_f = support
+                checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge)
+                fitted_share = max(checks.support) / fa.shape[0]
+            inliers_h, inliers_f = checks.support
             if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
             if consecutive:
@@ -289,7 +292,7 @@ class LandmarkTracker:
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
             # small rig motion makes H almost as good as F by the estimators' counts, yet near
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
-            rh, rf = residuals(model, xa[sel], xb[sel])
+            rh, rf = checks.residuals
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
@@ -503,10 +506,22 @@ def _median(x: np.ndarray) -> float:
     return 0.5 * (middle[(n - 1) // 2] + middle[n // 2])
 
 
-def _motion_support(model, xa: np.ndarray, xb: np.ndarray) -> Tuple[int, int]:
-    """(pairs within H's threshold, pairs within F's) of a motion model on pairs xa <-> xb (M, 2)."""
-    rh, rf = residuals(model, xa, xb)
-    return int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
+class _MotionChecks:
+    """A motion model's residuals on a frame pair's pairs xa <-> xb (M, 2) and its support on
+    the pairs it is fitted on: those of ``fitted`` (M,) bool and the ``bridge`` pairs (or None).
+
+    Attributes:
+        residuals: (H's, F's) (M,) each (:func:`gcn_match_ros.edges.verify.residuals`);
+        support: (fitted pairs within H's threshold, within F's).
+    """
+
+    def __init__(self, model, xa: np.ndarray, xb: np.ndarray, fitted: np.ndarray, bridge) -> None:
+        self.residuals = rh, rf = residuals(model, xa, xb)
+        rh, rf = rh[fitted], rf[fitted]
+        if bridge is not None:
+            bh, bf = residuals(model, *bridge)
+            rh, rf = np.concatenate([rh, bh]), np.concatenate([rf, bf])
+        self.support = int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
 
 
 class PerCameraNNLinker:

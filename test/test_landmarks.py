@@ -253,6 +253,27 @@ def test_unit_means_are_the_members_mean_descriptors():
     np.testing.assert_allclose(_unit_means(rows, sizes, desc), expected, rtol=1e-6)
 
 
+def test_motion_checks_count_support_on_the_fitted_and_bridge_pairs_only():
+    from gcn_match_ros.edges.verify import fit_pair, residuals
+    from gcn_match_ros.landmarks import _MotionChecks
+
+    rng = np.random.default_rng(1)
+    xa = rng.uniform(0, 640, (60, 2))
+    xb = xa + [6.0, 0.0]
+    xb[:10] += rng.uniform(20, 40, (10, 2))            # 10 pairs against the motion
+    model = fit_pair(xa[10:], xb[10:])
+    fitted = np.arange(60) % 2 == 0                   # 5 of the wrong pairs among the fitted
+    bridge = (rng.uniform(0, 640, (7, 2)),) * 2       # 7 pairs that did not move
+    checks = _MotionChecks(model, xa, xb, fitted, bridge)
+    rh, rf = residuals(model, xa, xb)
+    np.testing.assert_array_equal(checks.residuals[0], rh)
+    np.testing.assert_array_equal(checks.residuals[1], rf)
+    assert _MotionChecks(model, xa, xb, fitted, None).support == (
+        int((rh[fitted] <= model.px).sum()), int((rf[fitted] <= model.epipolar_fit_px).sum())) == (25, 25)
+    bh, bf = residuals(model, *bridge)
+    assert checks.support == (25 + int((bh <= model.px).sum()), 25 + int((bf <= model.epipolar_fit_px).sum()))
+
+
 def test_a_continuation_against_the_motion_of_the_others_is_refused():
     """Window 2 moves every point 6 px right; one point is gone and a look-alike (its descriptor)
     sits 25 px below where it should be: within the image gate, against the motion."""
