@@ -5,7 +5,9 @@ For every (cameras, keypoints per view) configuration this starts the matcher no
 own process (``python -m gcn_match_ros.ros.matcher_node``, own namespace, this machine
 only), publishes synchronised Keypoints frames of every camera at ``--rate`` Hz (all
 cameras stamped with the same capture time, SIFT-like 128-D descriptors of a synthetic
-3D scene: ``synthetic.rome16k``) and receives the MatchWindows in a subscriber:
+3D scene: ``--scene still`` the same ``synthetic.rome16k`` scene every capture, ``moving`` a
+generated rig driving through a scene, ``data.rig_sequence``) and receives the MatchWindows in a
+subscriber:
 
 - latency = receive time of a window - its newest view stamp (capture -> consumer: DDS in,
   windowing, graph, solver, rounding, packing, DDS out), p50 / p95 / max;
@@ -58,6 +60,9 @@ def _parser():
                    help="the node's input_qos parameter (default: the node's default)")
     p.add_argument("--default-shm", action="store_true",
                    help="keep Fast DDS's default 512 KiB shared-memory segment (no gcn_match_ros profile)")
+    p.add_argument("--scene", default="still", choices=("still", "moving"),
+                   help="still: one synthetic scene every capture (every landmark continues, no motion to fit); "
+                        "moving: a generated rig driving through a scene, forth and back")
     p.add_argument("--landmarks", default="true", choices=("true", "false"),
                    help="the node's landmarks parameter (false: no temporal association, to measure its cost)")
     p.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
@@ -82,19 +87,45 @@ def machine_extra() -> list:
             f"load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}"]
 
 
-def _frames(n_cams: int, n_kp: int, seed: int = 0):
-    """Keypoints messages (one per camera) of a synthetic scene, exactly ``n_kp`` per view."""
-    from gcn_match_ros.ros.conversions import frame_to_keypoints
+#: windows of the moving scene's rig path, played forth and back (0.25 m a window: 15 m of a 30 m scene)
+MOVING_WINDOWS = 60
+SCENES = {"still": "the same still scene every capture: every landmark continues, no motion to fit",
+          "moving": f"a rig of the cameras driving through a generated scene, {MOVING_WINDOWS} captures "
+                    "played forth and back (data.rig_sequence: 0.25 m and 0.5 degrees a capture; at most the "
+                    "keypoints per view of the table, fewer where a camera sees fewer points)"}
+
+
+def _captures(n_cams: int, n_kp: int, scene: str, seed: int = 0) -> list:
+    """Per capture, the Keypoints messages of every camera (at most ``n_kp`` a view); the
+    publisher cycles through the captures. ``scene`` "still": one synthetic scene
+    (``synthetic.rome16k``, exactly ``n_kp`` a view) every time; "moving": a rig driving through
+    a generated scene (``data.rig_sequence``, ~10 % more points seen than ``n_kp`` a view, the
+    first ``n_kp`` kept), played forth and back so that it never jumps."""
+    from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
     from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
+
+    if scene == "still":
+        return [_messages(random_scene_problem(rome16k(n_cams, n_points=n_kp), rng=seed), n_kp)]
+    # 1500 scene points give ~450 keypoints a view (landmark_eval's rigs)
+    cfg = RigSequenceConfig(n_cameras=n_cams, n_windows=MOVING_WINDOWS, n_points=int(1500 * 1.1 * n_kp / 450))
+    problems, _, _ = rig_sequence(cfg, rng=seed)
+    captures = [_messages(p, n_kp) for p in problems]
+    return captures + captures[-2:0:-1]
+
+
+def _messages(p, n_kp: int) -> list:
+    """Keypoints messages (one per view, camera ids cam0, cam1, ...) of a problem's first ``n_kp``
+    keypoints of every view."""
+    from gcn_match_ros.ros.conversions import frame_to_keypoints
     from gcn_match_ros.windowing import Frame
 
-    p = random_scene_problem(rome16k(n_cams, n_points=n_kp), rng=seed)
     msgs = []
-    for v in range(n_cams):
-        s = p.view_slice(v)
-        idx = np.arange(s.start, s.stop)[:n_kp]
+    for v in range(p.n_views):
+        idx = np.arange(p.view_slice(v).start, p.view_slice(v).stop)[:n_kp]
         f = Frame(camera_id=f"cam{v}", stamp_ns=10**9, keypoints=p.keypoints[idx], descriptors=p.descriptors[idx],
-                  frame_id=f"cam{v}_optical_frame", scales=p.scales[idx], orientations=p.orientations[idx],
+                  frame_id=f"cam{v}_optical_frame",
+                  scales=None if p.scales is None else p.scales[idx],
+                  orientations=None if p.orientations is None else p.orientations[idx],
                   K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]), descriptor_name="sift")
         msgs.append(frame_to_keypoints(f))
     return msgs
@@ -126,7 +157,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
            "--log-level", "warn"]
     log = tempfile.NamedTemporaryFile("w+", prefix="node_latency-", suffix=".log", delete=False)
     node_proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
-    msgs = _frames(n_cams, n_kp)
+    captures = _captures(n_cams, n_kp, args.scene)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain, signal_handler_options=SignalHandlerOptions.NO)
     reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -177,7 +208,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
             t_next += period
             now = time.time_ns()
             sec, nsec = divmod(now, 1_000_000_000)
-            for m, pub in zip(msgs, pubs):
+            for m, pub in zip(captures[k % len(captures)], pubs):
                 m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
                 pub.publish(m)
             if k >= measure_from:
@@ -307,7 +338,7 @@ Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
 
 Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}; every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz
-(all stamped with the capture time; synthetic SIFT-like 128-D descriptors), {args.duration:g} s measured after
+(all stamped with the capture time; synthetic SIFT-like 128-D descriptors; {SCENES[args.scene]}), {args.duration:g} s measured after
 {args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,
 publishers and the MatchWindow subscriber reliable, all on this machine; {shm}.
 Latency = window received by the subscriber − newest view stamp. "partial" = windows with fewer views

@@ -16,6 +16,8 @@ Usage::
 
     ./run.sh python benchmarks/node_latency_landmarks.py                  # 2 and 4 cameras, 2 rounds
     ./run.sh python benchmarks/node_latency_landmarks.py --cameras 4 --keypoints 500 --rounds 4
+    # a moving rig (motion fitted every window), table in node_latency_landmarks_moving.md
+    ./run.sh python benchmarks/node_latency_landmarks.py --scene moving --keypoints 500
 """
 from __future__ import annotations
 
@@ -44,7 +46,9 @@ def _parser():
     p.add_argument("--rate", type=float, default=10.0, help="capture rate, Hz")
     p.add_argument("--duration", type=float, default=12.0, help="measured seconds per run")
     p.add_argument("--warmup", type=float, default=2.0, help="seconds published before measuring")
-    p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "node_latency_landmarks.md")
+    p.add_argument("--scene", default="still", choices=("still", "moving"), help="as node_latency.py's")
+    p.add_argument("--out", type=Path, default=None,
+                   help="default: benchmarks/results/node_latency_landmarks.md, _moving.md for the moving scene")
     return p
 
 
@@ -52,7 +56,7 @@ def _node_args(args, landmarks: bool):
     """node_latency's arguments for one run: its defaults, this run's rate and durations."""
     return node_latency._parser().parse_args(
         ["--rate", str(args.rate), "--duration", str(args.duration), "--warmup", str(args.warmup),
-         "--landmarks", "true" if landmarks else "false"])
+         "--landmarks", "true" if landmarks else "false", "--scene", args.scene])
 
 
 def compare(n_cams: int, n_kp: int, args, solver: str, env, domain) -> dict:
@@ -76,6 +80,8 @@ def compare(n_cams: int, n_kp: int, args, solver: str, env, domain) -> dict:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    args.out = args.out or REPO / "benchmarks" / "results" / (
+        "node_latency_landmarks.md" if args.scene == "still" else f"node_latency_landmarks_{args.scene}.md")
     solver = args.solver or node_latency.default_solver()
     env, domain, shm = node_latency.ros_environment(_node_args(args, True))
     import torch
@@ -118,7 +124,7 @@ Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s; solver `{s
 
 Each configuration ran {args.rounds} times with the node's `landmarks` parameter off and
 {args.rounds} times on, alternating which went first; the node in its own process, frames as in
-node_latency.py (the same still synthetic scene every 100 ms: every landmark continues).
+node_latency.py ({node_latency.SCENES[args.scene]}).
 Medians over the rounds; "ratio" = on / off of those medians (the goal's measure); "per round" =
 each round's compute ratio; "of it landmark association" = the association's own time in the
 node (its /diagnostics p50 over the last 10 s of each on run), and "within the on runs" = compute
