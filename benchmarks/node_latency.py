@@ -99,14 +99,15 @@ def _captures(n_cams: int, n_kp: int, scene: str, seed: int = 0) -> list:
     """Per capture, the Keypoints messages of every camera (at most ``n_kp`` a view); the
     publisher cycles through the captures. ``scene`` "still": one synthetic scene
     (``synthetic.rome16k``, exactly ``n_kp`` a view) every time; "moving": a rig driving through
-    a generated scene (``data.rig_sequence``, ~10 % more points seen than ``n_kp`` a view, the
-    first ``n_kp`` kept), played forth and back so that it never jumps."""
+    a generated scene (``data.rig_sequence``; the first ``n_kp`` of a view's keypoints, fewer
+    where a camera sees fewer points), played forth and back so that it never jumps."""
     from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
     from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 
     if scene == "still":
         return [_messages(random_scene_problem(rome16k(n_cams, n_points=n_kp), rng=seed), n_kp)]
-    # 1500 scene points give ~450 keypoints a view (landmark_eval's rigs)
+    # 1500 scene points give ~450 keypoints a view on 2 cameras (landmark_eval's rigs; fewer in a
+    # wider rig's outer cameras: at 4 x 500 a view's median is 420)
     cfg = RigSequenceConfig(n_cameras=n_cams, n_windows=MOVING_WINDOWS, n_points=int(1500 * 1.1 * n_kp / 450))
     problems, _, _ = rig_sequence(cfg, rng=seed)
     captures = [_messages(p, n_kp) for p in problems]
@@ -121,7 +122,8 @@ def _messages(p, n_kp: int) -> list:
 
     msgs = []
     for v in range(p.n_views):
-        idx = np.arange(p.view_slice(v).start, p.view_slice(v).stop)[:n_kp]
+        s = p.view_slice(v)
+        idx = np.arange(s.start, s.stop)[:n_kp]
         f = Frame(camera_id=f"cam{v}", stamp_ns=10**9, keypoints=p.keypoints[idx], descriptors=p.descriptors[idx],
                   frame_id=f"cam{v}_optical_frame",
                   scales=None if p.scales is None else p.scales[idx],
