@@ -178,11 +178,13 @@ class LandmarkTracker:
                                        np.float64(cfg.gate_px), np.float32(cfg.min_similarity),
                                        np.float32(cfg.cross_similarity))
 
-        half = n // 2 if n * self._ids.size >= SPLIT_PRODUCTS else n
-        with alongside(two_best, half, n, parallel=half < n) as second_half:   # unsplit: an empty rest, here
-            first_half = two_best(0, half)
-        first, second, first_score, second_score = (np.concatenate(parts)
-                                                    for parts in zip(first_half, second_half.result()))
+        if n * self._ids.size < SPLIT_PRODUCTS:
+            first, second, first_score, second_score = two_best(0, n)
+        else:
+            with alongside(two_best, n // 2, n) as second_half:
+                first_half = two_best(0, n // 2)
+            first, second, first_score, second_score = (np.concatenate(parts)
+                                                        for parts in zip(first_half, second_half.result()))
         rows = np.arange(n)
         member = np.concatenate([rows, rows])
         lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
