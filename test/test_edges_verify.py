@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gcn_match_ros import geometry
-from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
+from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
 from conftest import look_at
 
@@ -127,3 +127,38 @@ def test_agreement_tolerance_follows_the_keypoint_noise():
     assert AGREE_MIN_PX < noisy.epipolar_px <= EPIPOLAR_PX
     very_noisy = fit_pair(xa + rng.normal(0, 2.0, xa.shape), xb + rng.normal(0, 2.0, xb.shape), K_a=K, K_b=K)
     assert very_noisy.epipolar_px == EPIPOLAR_PX
+
+
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_fine_fit_is_kept_for_sub_pixel_keypoints_only(calibrated):
+    """fine_px is tried first: kept (fit threshold and agreement tolerance FINE_PX) where the
+    keypoints carry 0.1 px of noise, replaced by the fit at epipolar_px where they carry 1 px;
+    without fine_px every model is fitted at epipolar_px."""
+    rng = np.random.default_rng(8)
+    xa, xb, _ = _non_planar_pairs(rng, n=120)
+    intrinsics = {"K_a": K, "K_b": K} if calibrated else {}
+    for noise, fit_px in ((0.1, FINE_PX), (1.0, EPIPOLAR_PX)):
+        na, nb = xa + rng.normal(0, noise, xa.shape), xb + rng.normal(0, noise, xb.shape)
+        model = fit_pair(na, nb, fine_px=FINE_PX, **intrinsics)
+        assert model is not None and not model.planar and model.trusted()
+        assert model.epipolar_fit_px == fit_px
+        assert model.epipolar_px <= fit_px
+        assert fit_pair(na, nb, **intrinsics).epipolar_fit_px == EPIPOLAR_PX
+        assert fit_pair(na, nb, fine_px=EPIPOLAR_PX, **intrinsics).epipolar_fit_px == EPIPOLAR_PX
+
+
+def test_fine_fit_sees_through_repetitions_a_coarse_fit_accepts():
+    """Sub-pixel keypoints plus a third of pairs shifted 3 px across the (near-horizontal)
+    epipolar lines, as repetitions a few pixels off the true lines: the 2 px fit tilts its
+    lines towards them and accepts them, the fine fit keeps the true geometry and refuses them."""
+    rng = np.random.default_rng(9)
+    xa, xb, _ = _non_planar_pairs(rng, n=150)
+    xa, xb = xa + rng.normal(0, 0.1, xa.shape), xb + rng.normal(0, 0.1, xb.shape)
+    shifted = np.arange(150) < 50
+    xb = xb + np.where(shifted[:, None], [0.0, 3.0], 0.0)
+    fine = fit_pair(xa, xb, fine_px=FINE_PX)
+    coarse = fit_pair(xa, xb)
+    assert fine.epipolar_fit_px == FINE_PX
+    assert fine.agrees(xa[shifted], xb[shifted]).mean() < 0.1
+    assert fine.agrees(xa[~shifted], xb[~shifted]).mean() > 0.9
+    assert coarse.agrees(xa[shifted], xb[shifted]).mean() > 0.5

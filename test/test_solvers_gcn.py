@@ -181,25 +181,32 @@ def test_epipolar_ratio_only_removes_pairs(one_torch_thread):
     assert is_cycle_consistent(strict.track, problem.view_index)
 
 
-def test_epipolar_fit_px_suits_precise_keypoints_only(one_torch_thread):
-    """The epipolar models' fit threshold reaches the candidate edges (default: the shipped
-    models' training value); at 0.5 px a window of precisely localised keypoints (0.1 px noise)
-    matches as well as at 2 px, while keypoints with 1 px of noise lose their models and most
-    of their matches — why the default stays at 2 px."""
+def test_epipolar_fit_follows_the_keypoints_localisation(one_torch_thread):
+    """By default each view pair's epipolar model is fitted at epipolar_fine_px (0.5 px) where its
+    seeds show sub-pixel keypoints and at epipolar_fit_px (2 px, the shipped models' training
+    value) otherwise: on a window of precisely localised keypoints (0.1 px noise) it matches as
+    well as the fixed 0.5 px fit; on keypoints with 1 px of noise exactly as without the fine
+    fit, where the fixed 0.5 px fit loses its models and most of its matches."""
     from gcn_match_ros.data import synthetic
-    from gcn_match_ros.edges.verify import EPIPOLAR_PX
+    from gcn_match_ros.edges.candidates import candidate_edges
+    from gcn_match_ros.edges.verify import EPIPOLAR_PX, FINE_PX
 
-    assert solvers.create("gcn").edge_config.epipolar_px == EPIPOLAR_PX
+    default = solvers.create("gcn")
+    assert (default.edge_config.epipolar_px, default.edge_config.fine_px) == (EPIPOLAR_PX, FINE_PX)
     assert solvers.create("gcn:epipolar_fit_px=0.5").edge_config.epipolar_px == 0.5
-    with pytest.raises(ValueError, match="epipolar_fit_px"):
-        solvers.create("gcn:epipolar_fit_px=0")
-    f1 = {}
-    for noise in (0.1, 1.0):
+    for bad in ("gcn:epipolar_fit_px=0", "gcn:epipolar_fine_px=-1"):
+        with pytest.raises(ValueError, match="epipolar_fi"):
+            solvers.create(bad)
+    specs = ("gcn", "gcn:epipolar_fine_px=0", "gcn:epipolar_fit_px=0.5")
+    for noise, fit_px in ((0.1, FINE_PX), (1.0, EPIPOLAR_PX)):
         problem = synthetic.random_scene_problem(synthetic.rome16k(3, pixel_noise=noise), np.random.default_rng([11, 0]))
-        f1[noise] = [score_result(problem, solvers.create(spec).solve(problem))["F1"]
-                     for spec in ("gcn", "gcn:epipolar_fit_px=0.5")]
-    assert f1[0.1][1] > f1[0.1][0] - 0.02 and f1[0.1][1] > 0.9
-    assert f1[1.0][1] < f1[1.0][0] - 0.3
+        models = [m for m in candidate_edges(problem, default.edge_config).models.values() if m is not None]
+        assert models and {m.epipolar_fit_px for m in models} == {fit_px}
+        f1 = [score_result(problem, solvers.create(spec).solve(problem))["F1"] for spec in specs]
+        if noise < 1.0:
+            assert f1[0] > 0.9 and abs(f1[0] - f1[2]) < 0.02
+        else:
+            assert f1[0] == f1[1] and f1[2] < f1[0] - 0.3
 
 
 def test_candidates_beside_the_network_change_nothing(one_torch_thread):

@@ -39,7 +39,7 @@ from ..problem import Problem
 from ..similarity import DescriptorSimilarity, most_similar
 from ..timing import stage
 from .rig_memory import RigMemory
-from .verify import EPIPOLAR_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
+from .verify import EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "candidate_edges", "confident_pairs", "EDGE_FEATURES",
            "RANK_CAP"]
@@ -59,7 +59,8 @@ class EdgeConfig(JsonConfig):
     min_inliers, min_inlier_ratio: when a fitted model is trusted
     (:meth:`.verify.PairModel.trusted`; 0, 0: any fitted model, the classic RANSAC
     baseline); essential: fit an essential matrix where the problem has intrinsics;
-    epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels)."""
+    epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels); fine_px:
+    the threshold tried first, kept for sub-pixel keypoints (:func:`.verify.fit_pair`; 0: off)."""
 
     k: int = 4
     geometry: bool = True
@@ -71,6 +72,7 @@ class EdgeConfig(JsonConfig):
     min_inlier_ratio: float = MIN_INLIER_RATIO
     essential: bool = True
     epipolar_px: float = EPIPOLAR_PX
+    fine_px: float = FINE_PX
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
@@ -208,7 +210,8 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
             seed_b = ir[seed_a, 0]
         with stage("geometry"):
             def fit() -> Optional[PairModel]:
-                return fit_pair(xa[seed_a], xb[seed_b], K_a=K_a, K_b=K_b, epipolar_px=config.epipolar_px)
+                return fit_pair(xa[seed_a], xb[seed_b], K_a=K_a, K_b=K_b, epipolar_px=config.epipolar_px,
+                                fine_px=config.fine_px)
 
             if rig is not None:
                 model = rig.model(cameras, xa[seed_a], xb[seed_b], fit, config.min_inliers, config.min_inlier_ratio)

@@ -25,7 +25,7 @@ from ..edges.candidates import EdgeConfig, candidate_edges
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.rig_memory import RigMemory
-from ..edges.verify import EPIPOLAR_PX, MIN_SEEDS
+from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
@@ -83,19 +83,21 @@ class GCNSolverConfig(SolverConfig):
             dropped when another keypoint along its epipolar line is nearly as similar to it
             (Lowe's ratio along the line at or above this, :mod:`gcn_match_ros.edges.ambiguity`):
             repetitions of a structure the cameras move along (castle-P19's facade: geometric
-            precision 0.80 -> 0.87 at 0.8). 0: off, the default: with weak descriptors every
+            precision 0.85 -> 0.90 at 0.9, 0.91 at 0.8, with the default fine fit). 0: off, the
+            default: with weak descriptors every
             right pair has a rival on its line (generated scenes: F1 0.88 -> 0.28).
         epipolar_fit_px: inlier threshold (Sampson distance, pixels) of the two-view epipolar
             models, which also caps the tolerance within which a pair agrees with one
-            (:func:`gcn_match_ros.edges.verify.fit_pair`). Lower it for keypoints localised to
-            a fraction of a pixel (SIFT on real images, ~0.1-0.4 px): at 2 px a model also
+            (:func:`gcn_match_ros.edges.verify.fit_pair`); 2 px, the shipped models' training
+            value, suits keypoints with ~1 px of noise (the generated scenes).
+        epipolar_fine_px: the fit threshold tried first; kept for a view pair whose seeds show
+            keypoints localised to a fraction of a pixel (SIFT on real images, ~0.1-0.4 px),
+            else the pair is fitted again at ``epipolar_fit_px``
+            (:func:`gcn_match_ros.edges.verify.fit_pair`). At 2 px a model of such keypoints also
             explains repetitions shifted a few pixels off the true epipolar lines and tilts its
             lines towards them (castle-P19: lines ~4 degrees off, a third of a view pair's pairs
-            wrong); at 0.5 px geometric precision rises from 0.93 to 0.96 on the development
-            scenes (1.66x nn-ransac's consistent pairs) and from 0.80 to 0.88 on castle-P19
-            (0.89 with ``rotation_cycles``; benchmarks/results/geometric_eval.md). 2 px (the
-            shipped models' training value) is the default: keypoints with ~1 px of noise (the
-            generated scenes) lose their models at 0.5 px (3-view F1 0.89 -> 0.28).
+            wrong). 0: off (every model at ``epipolar_fit_px``). Measured in
+            benchmarks/results/geometric_eval.md.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -114,6 +116,7 @@ class GCNSolverConfig(SolverConfig):
     rotation_cycles: bool = False
     epipolar_ratio: float = 0.0
     epipolar_fit_px: float = EPIPOLAR_PX
+    epipolar_fine_px: float = FINE_PX
     parallel: bool = True
 
     def __post_init__(self) -> None:
@@ -129,6 +132,8 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
         if not self.epipolar_fit_px > 0.0:
             raise ValueError(f"epipolar_fit_px must be > 0, got {self.epipolar_fit_px}")
+        if not self.epipolar_fine_px >= 0.0:
+            raise ValueError(f"epipolar_fine_px must be >= 0 (0: off), got {self.epipolar_fine_px}")
         try:
             device = torch.device(self.device)
         except RuntimeError as exc:
@@ -219,8 +224,9 @@ class GCNSolver(Solver):
     @property
     def edge_config(self) -> EdgeConfig:
         """The candidate edges the loaded model was trained on, with this solver's epipolar
-        fit threshold."""
-        return dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px)
+        fit thresholds."""
+        return dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px,
+                                   fine_px=self.config.epipolar_fine_px)
 
     def describe(self) -> str:
         base = super().describe()

@@ -1,7 +1,7 @@
 """Honest baseline for test-time geometry: mutual NN + ratio 0.8, verified per view pair.
 
 Plain ``nn-ransac`` is the classic baseline: per view pair a USAC homography and
-fundamental matrix (1.5 px) on the confident pairs (:mod:`gcn_match_ros.edges.verify`, H
+fundamental matrix (1.5 px, whatever the keypoints' localisation) on the confident pairs (:mod:`gcn_match_ros.edges.verify`, H
 chosen when it explains the seeds about as well as F, any fitted model believed); a
 nearest-neighbour pair is kept when its residual under the selected model is below ``px``
 pixels, and pairs of a view pair where no model could be fitted are kept.
@@ -70,7 +70,8 @@ class NNRansacSolver(Solver):
                                           self.config.rotation_cycles)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
-                                                 min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2),
+                                                 min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2,
+                                                 fine_px=0.0),
                              similarity, rig)
         f = es.features
         keep = (f[:, _F["confident"]] > 0) & ((f[:, _F["has_model"]] == 0) | (es.res_px < self.config.px))
