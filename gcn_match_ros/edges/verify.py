@@ -10,8 +10,8 @@ The epipolar model's fit threshold follows the keypoints' localisation. SIFT on 
 localises to 0.1-0.4 px; fitted at 2 px, a model there also explains repetitions shifted a few
 pixels off the true epipolar lines and tilts its lines towards them (castle-P19: ~4 degrees, a
 third of a view pair's pairs wrong). So F is fitted first at ``fine_px`` (0.5 px) and kept when
-it has trusted support and the seeds show sub-pixel localisation: at least :data:`FINE_SHARE` of those within
-``epipolar_px`` of the fine model lie within ``fine_px`` (Gaussian noise of sigma gives
+it has trusted support and the seeds show sub-pixel localisation: at least :data:`FINE_SHARE`
+of those within ``epipolar_px`` of the fine model lie within ``fine_px`` (Gaussian noise of sigma gives
 ~erf(0.35 / sigma) / erf(1.41 / sigma): 0.99 at 0.2 px, 0.68 at 0.5 px; measured per view pair
 on the windows of benchmarks/geometric_eval.py: SIFT 0.72-1.0; generated scenes with 1 px of
 noise 0.54-0.77, their few fine inliers rarely trusted). Otherwise F is fitted again at
@@ -144,9 +144,9 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F;
     ``fine_px``: F's threshold for keypoints localised to a fraction of a pixel, tried first
     with at most :data:`FINE_MAX_ITERS` iterations (module docstring; 0 or >= ``epipolar_px``:
-    not tried); ``estimator``: OpenCV's method for
-    F or E (MAGSAC follows it where an E is degenerate); ``max_iters``: RANSAC iterations of H
-    and of F from pixels (fewer bound the cost and find only models of high inlier shares).
+    not tried); ``estimator``: OpenCV's method for F or E (MAGSAC follows it where an E is
+    degenerate); ``max_iters``: RANSAC iterations of H and of F from pixels (fewer bound the
+    cost and find only models of high inlier shares).
 
     Shapes: xa, xb (S, 2).
     """
@@ -168,25 +168,27 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     calibrated = K_a is not None and K_b is not None
 
     def fit_epipolar(threshold: float, iters: Optional[int] = None) -> Tuple[Optional[np.ndarray], int]:
+        """F (or E) at ``threshold``; ``iters``: RANSAC iterations (None: the path's usual count)."""
         if calibrated:
-            return _fit_essential(a, b, threshold, K_a, K_b, seed, estimator, iters or ESSENTIAL_MAX_ITERS)
-        return _fit_fundamental(a, b, threshold, seed, estimator, iters or max_iters)
+            return _fit_essential(a, b, threshold, K_a, K_b, seed, estimator,
+                                  ESSENTIAL_MAX_ITERS if iters is None else iters)
+        return _fit_fundamental(a, b, threshold, seed, estimator, max_iters if iters is None else iters)
 
-    fit_px, res = epipolar_px, None
+    fine = False
     if 0.0 < fine_px < epipolar_px:
         F, nf = fit_epipolar(fine_px, FINE_MAX_ITERS)
         if F is not None and trusted_support(nf, n):
             res = sampson_distance(F, a, b)
-            if (res <= fine_px).sum() >= FINE_SHARE * (res <= epipolar_px).sum():
-                fit_px = fine_px
-    if fit_px == epipolar_px:
+            fine = bool((res <= fine_px).sum() >= FINE_SHARE * (res <= epipolar_px).sum())
+    if not fine:
         F, nf = fit_epipolar(epipolar_px)
         res = sampson_distance(F, a, b) if F is not None else None
     if H is None and F is None:
         return None
+    fit_px = fine_px if fine else epipolar_px
     # H against F on equal terms: the seeds F explains within epipolar_px, whatever it was fitted at
-    planar = H is not None and (F is None or nh >= PLANAR_RATIO * (nf if fit_px == epipolar_px
-                                                                    else int((res <= epipolar_px).sum())))
+    nf_at_epipolar_px = int((res <= epipolar_px).sum()) if fine else nf
+    planar = H is not None and (F is None or nh >= PLANAR_RATIO * nf_at_epipolar_px)
     if not planar and F is None:
         return None
     agree_px = fit_px

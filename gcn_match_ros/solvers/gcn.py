@@ -84,8 +84,8 @@ class GCNSolverConfig(SolverConfig):
             (Lowe's ratio along the line at or above this, :mod:`gcn_match_ros.edges.ambiguity`):
             repetitions of a structure the cameras move along (castle-P19's facade: geometric
             precision 0.85 -> 0.90 at 0.9, 0.91 at 0.8, with the default fine fit). 0: off, the
-            default: with weak descriptors every
-            right pair has a rival on its line (generated scenes: F1 0.88 -> 0.28).
+            default: with weak descriptors every right pair has a rival on its line (generated
+            scenes: F1 0.88 -> 0.28).
         epipolar_fit_px: inlier threshold (Sampson distance, pixels) of the two-view epipolar
             models, which also caps the tolerance within which a pair agrees with one
             (:func:`gcn_match_ros.edges.verify.fit_pair`); 2 px, the shipped models' training
