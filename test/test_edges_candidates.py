@@ -132,3 +132,18 @@ def test_epipolar_guided_candidates_follow_the_dense_rule():
         np.testing.assert_array_equal(j, want_j)
         np.testing.assert_array_equal(i, want_i)
     assert 0 < found[0] < 60 and found[0] <= found[1] <= found[2]  # the tolerance matters
+
+
+def test_edge_config_fits_and_trusts_with_its_own_settings():
+    """EdgeConfig.fit is fit_pair at the config's thresholds (an essential matrix only when
+    asked for); EdgeConfig.trusted applies the config's trust rule and keeps the selected model."""
+    from test_edges_verify import K, _non_planar_pairs
+
+    xa, xb, _ = _non_planar_pairs(np.random.default_rng(4))
+    assert EdgeConfig().fit(xa, xb, K, K).essential
+    assert not EdgeConfig(essential=False).fit(xa, xb, K, K).essential
+    model = EdgeConfig().fit(xa, xb, K, K)
+    trusted = EdgeConfig().trusted(model)
+    assert trusted is not None and trusted.H is None and trusted.F is not None  # F selected
+    assert EdgeConfig(min_inliers=len(xa) + 1).trusted(model) is None
+    assert EdgeConfig().trusted(None) is None

@@ -2,6 +2,7 @@
 tracks that must agree as a whole."""
 import numpy as np
 
+from gcn_match_ros.edges.candidates import EdgeConfig
 from gcn_match_ros.edges.consistency import (CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry,
                                              verified_tracks)
 from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel
@@ -181,3 +182,15 @@ def test_no_chained_model_from_wrong_chains_or_too_few():
     geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (0, 2): None, (1, 2): _shift(10, 5)})
     assert geometry.with_chained_models(*_chains(p, 40, scramble_last=True), 0.5) is geometry
     assert geometry.with_chained_models(*_chains(p, 10), 0.5) is geometry
+
+
+def test_chained_models_are_fitted_and_trusted_by_the_candidates_settings():
+    """The geometry's EdgeConfig owns the trust rule of chained models too: 20 agreeing chains
+    give a trusted model under the defaults, none when the candidates' models needed 25
+    inliers."""
+    p = _window()
+    models = {(0, 1): _shift(10, 5), (0, 2): None, (1, 2): _shift(10, 5)}
+    chains = _chains(p, 20)
+    assert WindowGeometry(p, models).with_chained_models(*chains, 0.5).verified[0, 2]
+    strict = WindowGeometry(p, models, edges=EdgeConfig(min_inliers=25))
+    assert strict.with_chained_models(*chains, 0.5) is strict

@@ -78,6 +78,25 @@ class EdgeConfig(JsonConfig):
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
 
+    def fit(self, xa: np.ndarray, xb: np.ndarray, K_a: Optional[np.ndarray] = None,
+            K_b: Optional[np.ndarray] = None) -> Optional[PairModel]:
+        """The two-view model of seed pairs xa[i] <-> xb[i] at these thresholds, trusted or not
+        (:func:`.verify.fit_pair`; an essential matrix when ``essential`` and both intrinsics
+        K_a, K_b are given).
+
+        Shapes: xa, xb (S, 2) pixels; K_a, K_b (3, 3).
+        """
+        if not self.essential:
+            K_a = K_b = None
+        return fit_pair(xa, xb, K_a=K_a, K_b=K_b, epipolar_px=self.epipolar_px, fine_px=self.fine_px)
+
+    def trusted(self, model: Optional[PairModel]) -> Optional[PairModel]:
+        """``model`` with its selected H or F only when these settings trust its support
+        (:meth:`.verify.PairModel.trusted`), else None."""
+        if model is None or not model.trusted(self.min_inliers, self.min_inlier_ratio):
+            return None
+        return model.selected()
+
 
 ViewPair = Tuple[int, int]
 
@@ -140,7 +159,7 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
     V = problem.n_views
     kp = problem.keypoints.astype(np.float64)
     n = problem.n_keypoints
-    calibrated = config.essential and problem.K is not None
+    calibrated = problem.K is not None
     use_rig = rig is not None and problem.camera_ids is not None
     parts: List[PairCandidates] = []
     starts = []
@@ -210,15 +229,12 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
             seed_b = ir[seed_a, 0]
         with stage("geometry"):
             def fit() -> Optional[PairModel]:
-                return fit_pair(xa[seed_a], xb[seed_b], K_a=K_a, K_b=K_b, epipolar_px=config.epipolar_px,
-                                fine_px=config.fine_px)
+                return config.fit(xa[seed_a], xb[seed_b], K_a, K_b)
 
             if rig is not None:
                 model = rig.model(cameras, xa[seed_a], xb[seed_b], fit, config.min_inliers, config.min_inlier_ratio)
             else:
-                model = fit()
-                trusted = model is not None and model.trusted(config.min_inliers, config.min_inlier_ratio)
-                model = model.selected() if trusted else None
+                model = config.trusted(fit())
     guided = np.zeros(ea.shape[0], bool)
     if config.guided and model is not None:
         with stage("geometry"):

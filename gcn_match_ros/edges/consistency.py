@@ -50,8 +50,9 @@ import numpy as np
 from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
+from .candidates import EdgeConfig
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
-from .verify import MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair
+from .verify import MIN_SEEDS, PairModel
 
 __all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
 
@@ -73,11 +74,14 @@ class WindowGeometry:
         models: (i, j), i < j -> trusted model or None (:attr:`.candidates.EdgeSet.models`);
             view pairs not listed have none.
         unverified_threshold: the score a pair of an unverified view pair needs.
+        edges: the settings the models were fitted and trusted with; chained models
+            (:meth:`with_chained_models`) are fitted and trusted by the same.
     """
 
     def __init__(self, problem: Problem, models: Dict[ViewPair, Optional[PairModel]],
-                 unverified_threshold: float = UNVERIFIED_THRESHOLD) -> None:
+                 unverified_threshold: float = UNVERIFIED_THRESHOLD, edges: EdgeConfig = EdgeConfig()) -> None:
         self.problem = problem
+        self.edges = edges
         self.view_index = problem.view_index
         self.keypoints = problem.keypoints.astype(np.float64)
         self.models = {k: m for k, m in models.items() if m is not None}
@@ -100,7 +104,8 @@ class WindowGeometry:
         """This geometry plus the chained model of every unverified view pair that tracks link
         with enough support (module docstring): the tracks are merged greedily from the pairs
         scoring at least ``threshold``, without a track check; their members' pairs in an
-        unverified view pair are its seeds. ``self`` when no view pair gains a model.
+        unverified view pair are its seeds, fitted and trusted as the candidates' models are
+        (:attr:`edges`). ``self`` when no view pair gains a model.
 
         Shapes: rows, cols, scores (M,) the pairs :meth:`keep` kept.
         """
@@ -114,15 +119,15 @@ class WindowGeometry:
         models = dict(self.models)
         for a, b in todo:
             m = (va == a) & (vb == b)
-            if m.sum() < MIN_INLIERS:
+            if m.sum() < self.edges.min_inliers:
                 continue
-            model = fit_pair(self.keypoints[seed_rows[m]], self.keypoints[seed_cols[m]],
-                             K_a=None if K is None else K[a], K_b=None if K is None else K[b])
-            if model is not None and model.trusted():
-                models[(a, b)] = model.selected()
+            model = self.edges.trusted(self.edges.fit(self.keypoints[seed_rows[m]], self.keypoints[seed_cols[m]],
+                                                      None if K is None else K[a], None if K is None else K[b]))
+            if model is not None:
+                models[(a, b)] = model
         if len(models) == len(self.models):
             return self
-        return WindowGeometry(self.problem, models, self.unverified_threshold)
+        return WindowGeometry(self.problem, models, self.unverified_threshold, self.edges)
 
     def with_closed_rotation_cycles(self, rows: np.ndarray, cols: np.ndarray) -> "WindowGeometry":
         """This geometry without the essential-matrix models that close none of the rotation
@@ -153,7 +158,7 @@ class WindowGeometry:
         if not broken:
             return self
         return WindowGeometry(self.problem, {k: m for k, m in self.models.items() if k not in broken},
-                              self.unverified_threshold)
+                              self.unverified_threshold, self.edges)
 
     def transfers(self, a: int, b: int) -> tuple:
         """Per keypoint of views a < b (verified) what their model maps it to: planar — H x_a

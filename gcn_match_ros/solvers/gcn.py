@@ -263,7 +263,7 @@ class GCNSolver(Solver):
             with stage("candidates"):
                 soft = _with_descriptor_matches(problem, soft, similarity)
         if self.config.verify and edges.geometry:
-            geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold)
+            geometry = WindowGeometry(problem, es.models, self.config.unverified_threshold, edges)
             if self.config.epipolar_ratio > 0:
                 with stage("rounding"):
                     clear = ~ambiguous_pairs(geometry, similarity, edges.normalization,

@@ -59,13 +59,13 @@ class NNRansacSolver(Solver):
     def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity,
               rig: Optional[RigMemory] = None):
         if self.config.guided:
-            es = candidate_edges(problem, EdgeConfig(k=1, guided=True, guide_px=self.config.px, normalization="l2"),
-                                 similarity, rig)
+            edges = EdgeConfig(k=1, guided=True, guide_px=self.config.px, normalization="l2")
+            es = candidate_edges(problem, edges, similarity, rig)
             f = es.features
             pick = (f[:, _F["confident"]] > 0) | (f[:, _F["guided"]] > 0)
             rows, cols, scores = es.rows[pick], es.cols[pick], f[pick, _F["cosine"]]
             # scores are cosines: no pair of a view pair without a trusted model is kept
-            keep, track = verified_tracks(WindowGeometry(problem, es.models, unverified_threshold=1.0),
+            keep, track = verified_tracks(WindowGeometry(problem, es.models, unverified_threshold=1.0, edges=edges),
                                           rows, cols, scores, self.threshold, self.config.chained_models,
                                           self.config.rotation_cycles)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
