@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from gcn_match_ros.descriptors import cosine_distance
-from gcn_match_ros.edges.ambiguity import BAND_PX, ambiguous_pairs, band_runner_up
+from gcn_match_ros.edges.ambiguity import BAND_PX, MIN_JUDGED_COSINE, ambiguous_pairs, band_runner_up
 from gcn_match_ros.edges.consistency import WindowGeometry
 from gcn_match_ros.edges.verify import PairModel
 from gcn_match_ros.problem import Problem
@@ -81,3 +81,17 @@ def test_planar_missing_and_absent_models_judge_nothing():
         assert not ambiguous_pairs(_geometry(xa, xb, models), blocks, "l2", rows, cols, ratio=0.5).any()
     assert ambiguous_pairs(_geometry(xa, xb, {(0, 1): PairModel(H=None, F=F_ROWS)}), blocks, "l2",
                            np.zeros(0, np.int64), np.zeros(0, np.int64), ratio=0.8).shape == (0,)
+
+
+def test_pairs_less_similar_than_the_judged_cosine_are_not_judged():
+    """A near-copy rival makes a pair ambiguous only when the pair itself is a strong match: the
+    same rival ratio with cosines of weak descriptors (below MIN_JUDGED_COSINE) is left alone."""
+    xa, xb = np.array([[10.0, 50.0]]), np.array([[20.0, 50.0], [40.0, 51.0]])
+    geometry = _geometry(xa, xb, {(0, 1): PairModel(H=None, F=F_ROWS)})
+    rows, cols = np.array([0]), np.array([1])
+    for own, rival, judged in ((MIN_JUDGED_COSINE, MIN_JUDGED_COSINE - 0.01, True),
+                               (MIN_JUDGED_COSINE - 0.01, MIN_JUDGED_COSINE - 0.02, False)):
+        sim = np.array([[own, rival]], np.float32)
+        assert cosine_distance(np.float64(own)) >= 0.9 * cosine_distance(np.float64(rival))  # a rival either way
+        got = ambiguous_pairs(geometry, _Blocks({(0, 1): sim}), "l2", rows, cols, ratio=0.9)
+        np.testing.assert_array_equal(got, [judged])

@@ -16,12 +16,13 @@ along b's line — is nearly as similar to it as its partner::
 (homographies) are left alone: they map a point to a point, so a repetition is not on the
 same locus.
 
-Measured (benchmarks/results/geometric_eval.md, ``gcn:epipolar_ratio=0.8``): geometric
-precision castle-P19 0.80 -> 0.87 and development scenes 0.93 -> 0.95, at 1.48x / 1.61x
-nn-ransac's consistent pairs (from 1.92x / 1.78x). It is an option, off by default: where
-descriptors barely tell points apart, every right pair has a rival on its line — on the
-generated small-object scenes (true-match cosine ~0.66, the rival's ~0.6, and the scene's
-points crowd the epipolar lines) it drops most right pairs (3 x 80 points F1 0.88 -> 0.28).
+Only pairs whose own cosine is at least :data:`MIN_JUDGED_COSINE` are judged. A repetition
+is a near-copy: the pair and its rival are both very similar. Where descriptors barely tell
+points apart, every right pair has a rival on its line — on the generated small-object scenes
+(true-match cosine ~0.66, the rival's ~0.6, the scene's points crowding the epipolar lines)
+judging every pair at 0.9 took F1 0.85 -> 0.56 (rome16k, 3 views); judged from 0.8 nothing
+there changes, and castle-P19 keeps the gain (geometric precision 0.897 judging every pair,
+0.896 from 0.8: benchmarks/results/geometric_eval.md).
 """
 from __future__ import annotations
 
@@ -32,26 +33,29 @@ from ..descriptors import cosine_distance
 from ..similarity import DescriptorSimilarity
 from .consistency import WindowGeometry
 
-__all__ = ["BAND_PX", "ambiguous_pairs", "band_runner_up"]
+__all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up"]
 
 #: the band around an epipolar line in which another keypoint competes with a pair's partner:
 #: about the 2 px a right match may lie off the true line plus a model's own error
 BAND_PX = 3.0
+#: pairs less similar than this (cosine) are not judged (module docstring)
+MIN_JUDGED_COSINE = 0.8
 
 
 @numba.njit(cache=True)
-def _band_two_best(F, x_from, x_to, sim, band_px):
-    """For each keypoint of one view, its two most similar keypoints of the other view within
-    ``band_px`` of its epipolar line F [x, y, 1].
+def _band_two_best(F, x_from, x_to, sim, band_px, which):
+    """For keypoints ``which`` of one view, their two most similar keypoints of the other view
+    within ``band_px`` of their epipolar line F [x, y, 1].
 
-    Shapes: F (3, 3); x_from (n, 2); x_to (m, 2); sim (n, m) -> (n,) index of the best (-1:
-    none), (n,) its cosine and (n,) the second's (-inf: none).
+    Shapes: F (3, 3); x_from (n, 2); x_to (m, 2); sim (n, m); which (w,) -> (w,) index of the
+    best (-1: none), (w,) its cosine and (w,) the second's (-inf: none).
     """
-    n = x_from.shape[0]
+    n = which.shape[0]
     best_at = np.full(n, -1, np.int64)
     best = np.full(n, -np.inf)
     second = np.full(n, -np.inf)
-    for u in range(n):
+    for t in range(n):
+        u = which[t]
         x, y = x_from[u, 0], x_from[u, 1]
         l0 = F[0, 0] * x + F[0, 1] * y + F[0, 2]
         l1 = F[1, 0] * x + F[1, 1] * y + F[1, 2]
@@ -61,11 +65,11 @@ def _band_two_best(F, x_from, x_to, sim, band_px):
             if abs(l0 * x_to[k, 0] + l1 * x_to[k, 1] + l2) > reach:
                 continue
             s = sim[u, k]
-            if s > best[u]:
-                second[u] = best[u]
-                best[u], best_at[u] = s, k
-            elif s > second[u]:
-                second[u] = s
+            if s > best[t]:
+                second[t] = best[t]
+                best[t], best_at[t] = s, k
+            elif s > second[t]:
+                second[t] = s
     return best_at, best, second
 
 
@@ -83,16 +87,20 @@ def band_runner_up(F: np.ndarray, xa: np.ndarray, xb: np.ndarray, sim: np.ndarra
     Returns:
         (M,) float64: the largest cosine with the pair's other member of a keypoint k != ib[m]
         of view b within ``band_px`` of F x_a, or k != ia[m] of view a within ``band_px`` of
-        F^T x_b; -inf where the bands hold no other keypoint. Each keypoint's band is scanned
-        once (its two best), whatever the number of pairs.
+        F^T x_b; -inf where the bands hold no other keypoint. The band of each keypoint of a
+        pair is scanned once (its two best), whatever the number of pairs it is in.
     """
     F, xa, xb = np.asarray(F, np.float64), np.asarray(xa, np.float64), np.asarray(xb, np.float64)
     sim = np.asarray(sim, np.float32)
-    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, np.ascontiguousarray(sim), float(band_px))
+    ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
+    scan_a, at_a = np.unique(ia, return_inverse=True)
+    scan_b, at_b = np.unique(ib, return_inverse=True)
+    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, np.ascontiguousarray(sim), float(band_px), scan_a)
     in_a_at, in_a, in_a_second = _band_two_best(np.ascontiguousarray(F.T), xb, xa, np.ascontiguousarray(sim.T),
-                                                float(band_px))
-    from_a = np.where(in_b_at[ia] == ib, in_b_second[ia], in_b[ia])   # other keypoints of b on a's line
-    from_b = np.where(in_a_at[ib] == ia, in_a_second[ib], in_a[ib])   # other keypoints of a on b's line
+                                                float(band_px), scan_b)
+    # other keypoints of b on a's line, other keypoints of a on b's line
+    from_a = np.where(in_b_at[at_a] == ib, in_b_second[at_a], in_b[at_a])
+    from_b = np.where(in_a_at[at_b] == ia, in_a_second[at_b], in_a[at_b])
     return np.maximum(from_a, from_b)
 
 
@@ -101,8 +109,8 @@ def ambiguous_pairs(geometry: WindowGeometry, similarity: DescriptorSimilarity, 
     """Which pairs are ambiguous along their epipolar line (module docstring).
 
     Args:
-        geometry: the window's trusted models; pairs of other view pairs, and of planar
-            models, are never ambiguous.
+        geometry: the window's trusted models; pairs of other view pairs, of planar models,
+            and pairs less similar than :data:`MIN_JUDGED_COSINE` are never ambiguous.
         similarity, normalization: the window's descriptor cosines, as the solver compares them.
         rows, cols: (M,) global keypoint indices, view of rows < view of cols.
         ratio: the ratio at and above which a pair is ambiguous (> 1: only partners that another
@@ -126,7 +134,12 @@ def ambiguous_pairs(geometry: WindowGeometry, similarity: DescriptorSimilarity, 
             continue
         ia, ib = rows[sel] - offsets[a], cols[sel] - offsets[b]
         sim = similarity.block(a, b, normalization).numpy()
+        own_cosine = sim[ia, ib]
+        judged = own_cosine >= MIN_JUDGED_COSINE
+        if not judged.any():
+            continue
+        sel, ia, ib = sel[judged], ia[judged], ib[judged]
         runner_up = band_runner_up(model.F, xy[offsets[a]:offsets[a + 1]], xy[offsets[b]:offsets[b + 1]], sim, ia, ib)
-        own = cosine_distance(sim[ia, ib].astype(np.float64))
+        own = cosine_distance(own_cosine[judged].astype(np.float64))
         out[sel] = np.isfinite(runner_up) & (own >= ratio * cosine_distance(runner_up))
     return out
