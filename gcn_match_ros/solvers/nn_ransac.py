@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+from ..edges.ambiguity import ambiguous_pairs
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..edges.consistency import WindowGeometry, verified_tracks
 from ..edges.rig_memory import RigMemory
@@ -38,13 +39,21 @@ class NNRansacConfig(SolverConfig):
     trusted model may gain one from the tracks chained through other views
     (:mod:`gcn_match_ros.edges.consistency`); rotation_cycles: with ``guided`` and known
     intrinsics, models closing none of the window's rotation cycles are not trusted
-    (:mod:`gcn_match_ros.edges.rotation_cycles`; off by default, as for gcn). The ``graph`` setting is not used (no graph is built)."""
+    (:mod:`gcn_match_ros.edges.rotation_cycles`; off by default, as for gcn); epipolar_ratio: with
+    ``guided``, strong pairs with a near-copy along their epipolar line are dropped, as gcn does
+    (:mod:`gcn_match_ros.edges.ambiguity`; 0: off). The ``graph`` setting is not used (no graph is built)."""
 
     threshold: float = 0.0
     px: float = 3.0
     guided: bool = False
     chained_models: bool = False
     rotation_cycles: bool = False
+    epipolar_ratio: float = 0.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.epipolar_ratio >= 0.0:
+            raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
 
 
 @register
@@ -65,8 +74,12 @@ class NNRansacSolver(Solver):
             pick = (f[:, _F["confident"]] > 0) | (f[:, _F["guided"]] > 0)
             rows, cols, scores = es.rows[pick], es.cols[pick], f[pick, _F["cosine"]]
             # scores are cosines: no pair of a view pair without a trusted model is kept
-            keep, track = verified_tracks(WindowGeometry(problem, es.models, unverified_threshold=1.0, edges=edges),
-                                          rows, cols, scores, self.threshold, self.config.chained_models,
+            geometry = WindowGeometry(problem, es.models, unverified_threshold=1.0, edges=edges)
+            if self.config.epipolar_ratio > 0:
+                clear = ~ambiguous_pairs(geometry, similarity, edges.normalization, rows, cols,
+                                         self.config.epipolar_ratio)
+                rows, cols, scores = rows[clear], cols[clear], scores[clear]
+            keep, track = verified_tracks(geometry, rows, cols, scores, self.threshold, self.config.chained_models,
                                           self.config.rotation_cycles)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
