@@ -79,13 +79,13 @@ class GCNSolverConfig(SolverConfig):
             for wide views of large scenes with repeated structure (castle-P19: geometric precision
             0.80 -> 0.86); off by default, as a small object's rotations are too uncertain for it
             (generated scenes: F1 0.82 -> 0.29; benchmarks/results/model_cycles.md).
-        epipolar_ratio: with ``verify``, a strong pair (cosine >= 0.8) of a view pair with a
+        epipolar_ratio: with ``verify``, a strong pair (cosine at least
+            :data:`gcn_match_ros.edges.ambiguity.MIN_JUDGED_COSINE`) of a view pair with a
             trusted epipolar model is dropped when another keypoint along its epipolar line is
-            nearly as similar to it (Lowe's ratio along the line at or above this,
-            :mod:`gcn_match_ros.edges.ambiguity`): repetitions of a structure the cameras move
-            along (castle-P19's facade: geometric precision 0.85 -> 0.90 at 0.9, 0.91 at 0.8
-            with fewer right pairs; generated scenes, whose weak descriptors are not judged:
-            unchanged). 0: off.
+            nearly as similar to it (Lowe's ratio along the line at or above this): repetitions
+            of a structure the cameras move along (castle-P19's facade: geometric precision
+            0.85 -> 0.90 at 0.9, 0.91 at 0.8 with fewer right pairs; generated scenes, whose
+            weak descriptors are not judged: unchanged). 0: off.
         epipolar_fit_px: inlier threshold (Sampson distance, pixels) of the two-view epipolar
             models, which also caps the tolerance within which a pair agrees with one
             (:func:`gcn_match_ros.edges.verify.fit_pair`); 2 px, the shipped models' training
