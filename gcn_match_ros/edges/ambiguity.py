@@ -33,13 +33,19 @@ from ..descriptors import cosine_distance
 from ..similarity import DescriptorSimilarity
 from .consistency import WindowGeometry
 
-__all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up"]
+__all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up", "check_ratio"]
 
 #: the band around an epipolar line in which another keypoint competes with a pair's partner:
 #: about the 2 px a right match may lie off the true line plus a model's own error
 BAND_PX = 3.0
 #: pairs less similar than this (cosine) are not judged (module docstring)
 MIN_JUDGED_COSINE = 0.8
+
+
+def check_ratio(ratio: float) -> None:
+    """Refuse a solver's ``epipolar_ratio`` setting below 0 (0: the rule is off)."""
+    if not ratio >= 0.0:
+        raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {ratio}")
 
 
 @numba.njit(cache=True)

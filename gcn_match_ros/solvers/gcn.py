@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..descriptors import describe_descriptor_kind, descriptor_kind
-from ..edges.ambiguity import ambiguous_pairs
+from ..edges.ambiguity import ambiguous_pairs, check_ratio
 from ..edges.candidates import EdgeConfig, candidate_edges
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
@@ -128,8 +128,7 @@ class GCNSolverConfig(SolverConfig):
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         if not 0.0 <= self.unverified_threshold <= 1.0:
             raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
-        if not self.epipolar_ratio >= 0.0:
-            raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
+        check_ratio(self.epipolar_ratio)
         if not self.epipolar_fit_px > 0.0:
             raise ValueError(f"epipolar_fit_px must be > 0, got {self.epipolar_fit_px}")
         if not self.epipolar_fine_px >= 0.0:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
-from ..edges.ambiguity import ambiguous_pairs
+from ..edges.ambiguity import ambiguous_pairs, check_ratio
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..edges.consistency import WindowGeometry, verified_tracks
 from ..edges.rig_memory import RigMemory
@@ -52,8 +52,7 @@ class NNRansacConfig(SolverConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not self.epipolar_ratio >= 0.0:
-            raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {self.epipolar_ratio}")
+        check_ratio(self.epipolar_ratio)
 
 
 @register
