@@ -159,7 +159,6 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
     V = problem.n_views
     kp = problem.keypoints.astype(np.float64)
     n = problem.n_keypoints
-    calibrated = problem.K is not None
     use_rig = rig is not None and problem.camera_ids is not None
     parts: List[PairCandidates] = []
     starts = []
@@ -170,7 +169,7 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
             b0, b1 = int(offs[j]), int(offs[j + 1])
             if a1 - a0 < 2 or b1 - b0 < 2:
                 continue
-            intrinsics = (problem.K[i], problem.K[j]) if calibrated else (None, None)
+            intrinsics = (problem.K[i], problem.K[j]) if problem.K is not None else (None, None)
             cameras = (problem.camera_ids[i], problem.camera_ids[j]) if use_rig else None
             part, models[(i, j)] = _pair_edges(similarity.block(i, j, config.normalization), kp[a0:a1], kp[b0:b1],
                                                config, *intrinsics, rig=rig if use_rig else None, cameras=cameras)
@@ -207,8 +206,9 @@ def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: Edg
                 rig: Optional[RigMemory] = None, cameras: Optional[Tuple[str, str]] = None
                 ) -> Tuple[PairCandidates, Optional[PairModel]]:
     """Candidates of one view pair (a, b), their per-pair features and the pair's trusted model
-    (None without one); ``sim_t`` (n_a, n_b) cosines, K_a, K_b intrinsics (None: uncalibrated);
-    ``rig``: the stream's remembered models, consulted for ``cameras`` (both or neither)."""
+    (None without one); ``sim_t`` (n_a, n_b) cosines, K_a, K_b intrinsics (None: unknown; used as
+    :meth:`EdgeConfig.fit` says); ``rig``: the stream's remembered models, consulted for
+    ``cameras`` (both or neither)."""
     na, nb = sim_t.shape
     sim = sim_t.numpy()
     k = min(config.k, na, nb)
