@@ -35,15 +35,16 @@ Shapes are per window: N keypoints, views in ``camera_ids`` order.
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
-from typing import Dict, Iterator, Sequence, Tuple
+from typing import Dict, Iterator, Optional, Sequence, Tuple
 
 import cv2
 import numba
 import numpy as np
 
 from .descriptors import cosine_distance
-from .edges.verify import MIN_SEEDS, RANSAC_PX, fit_pair, residuals, trusted_support
+from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, residuals, trusted_support
 from .threads import alongside
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
@@ -61,10 +62,13 @@ MOTION_FIT_PAIRS = 128
 #: model is found and they stay unchecked)
 MOTION_MAX_ITERS = 200
 #: last window's motion model of a camera pair is used again while the share of the pairs it
-#: explains is at most this much below its share when it was fitted (else re-fitted): a model
+#: explains is at most this much below its share when it was fitted (else refined, else re-fitted): a model
 #: kept while it explained an absolute 0.8 drifted from the moving rig over windows and dropped
 #: right continuations (landmark_eval: 1.24 vs 0.71 id switches per 100 on 2 cameras, seed 10)
 MOTION_REUSE_DROP = 0.02
+#: motion models are remembered for frames up to this many windows apart (a landmark re-found
+#: after a gap is checked on the motion since its last sighting, which a steady rig repeats too)
+MOTION_MEMORY_WINDOWS = 8
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
 #: a window's landmark candidates are found on two threads from this many (keypoint, landmark)
@@ -106,8 +110,10 @@ class LandmarkTracker:
         self._xy = np.zeros((0, 0, 2))   # (L, cameras, 2): where each camera saw it last (NaN: not)
         self._xy_before = np.zeros((0, 0, 2))  # (L, cameras, 2): the same at the sighting before
         self._before_ns = np.zeros(0, np.int64)  # time of that sighting (-1: none)
-        self._motion_models = {}          # (last camera, camera) column -> (motion model, share explained when fitted)
-        self._previous_ns = None          # the last window's time
+        # (last camera column, camera column, windows between the frames) -> (motion model, share
+        # explained when fitted)
+        self._motion_models = {}
+        self._recent_ns = collections.deque(maxlen=MOTION_MEMORY_WINDOWS)  # the last windows' times, newest first
         self.born = 0
         self.retired = 0
 
@@ -156,8 +162,21 @@ class LandmarkTracker:
         has = landmark >= 0
         ids, ages = np.full(n, -1, np.int64), np.full(n, -1, np.int64)
         ids[has], ages[has] = self._ids[landmark[has]], stamp_ns - self._born_ns[landmark[has]]
-        self._previous_ns = stamp_ns
+        self._recent_ns.appendleft(stamp_ns)
         return ids, ages
+
+    @property
+    def _previous_ns(self):
+        """The last window's time (None before the first)."""
+        return self._recent_ns[0] if self._recent_ns else None
+
+    def _windows_back(self, stamp_ns: int):
+        """How many windows ago the frame of ``stamp_ns`` was (1: the last window); None when it
+        is older than the remembered windows."""
+        for back, ns in enumerate(self._recent_ns, 1):
+            if ns == stamp_ns:
+                return back
+        return None
 
     def _candidates(self, column, keypoints, desc):
         """Each keypoint's two best landmarks that pass the gate and their similarity (module
@@ -205,10 +224,12 @@ class LandmarkTracker:
         one-to-one claims): a unit outscored for its landmark is mostly a wrong continuation, and
         a static 2-camera scene's lone keypoints made 70% of the fitted pairs wrong (every fit
         untrusted, four a window); every continuation is still checked against the models.
-        Consecutive frames of a camera pair re-check last window's model first and re-fit only
-        when it explains a share of the pairs more than ``MOTION_REUSE_DROP`` below its share
-        when fitted, as the rig memory does for camera pairs: a rig moving steadily is not
-        re-fitted every window.
+        The frames of a camera pair as many windows apart as a frame pair of last window (up to
+        ``MOTION_MEMORY_WINDOWS``) re-check that pair's model first; when it explains a share of
+        the pairs more than ``MOTION_REUSE_DROP`` below its share when fitted, it is refined by
+        least squares on the pairs it still explains, and re-fitted only when that falls short
+        too, as the rig memory does for camera pairs: a rig moving steadily is not re-fitted
+        every window.
         A continuation most of whose checked pairs disagree is dropped (one wrong member of a
         track does not undo the track's continuation): what descriptors and the image gate
         cannot tell apart on repetitive structure, the motion of the other points can.
@@ -268,17 +289,25 @@ class LandmarkTracker:
             # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
             fa, fb = (xa[on], xb[on]) if bridge is None else (np.concatenate([xa[on], bridge[0]]),
                                                               np.concatenate([xb[on], bridge[1]]))
-            # consecutive frames of a camera pair: last window's model first (a rig moving
-            # steadily moves alike window after window), re-fitted when it explains fewer pairs
-            # than when it was fitted
+            # a camera pair's frames the same number of windows apart as last window's: that
+            # window's model first (a rig moving steadily moves alike window after window),
+            # re-fitted when it explains fewer pairs than when it was fitted
             cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
-            consecutive = seen_ns[sel[0]] == self._previous_ns
-            model, fitted_share = self._motion_models.get(cams, (None, 0.0)) if consecutive else (None, 0.0)
+            memory = self._windows_back(int(seen_ns[sel[0]]))
+            memory = None if memory is None else cams + (memory,)
+            model, fitted_share = self._motion_models.get(memory, (None, 0.0))
             # residuals once per model on the frame pair's pairs (the fitted ones are among them)
             # and the bridge pairs
             fitted_in_sel = pair_claimed[sel]
             checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge) if model is not None else None
-            if checks is None or max(checks.support) < (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]:
+            enough = (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]
+            if checks is not None and max(checks.support) < enough:
+                # least squares on the pairs it still explains first: a steady rig's motion drifts
+                # slowly, and a re-fit costs several times as much
+                refined = _refined(model, fa, fb)
+                if refined is not None:
+                    model, checks = refined, _MotionChecks(refined, xa[sel], xb[sel], fitted_in_sel, bridge)
+            if checks is None or max(checks.support) < enough:
                 # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
                 fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
                 model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
@@ -289,8 +318,8 @@ class LandmarkTracker:
             inliers_h, inliers_f = checks.support
             if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
-            if consecutive:
-                self._motion_models[cams] = (model, fitted_share)
+            if memory is not None:
+                self._motion_models[memory] = (model, fitted_share)
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
             # small rig motion makes H almost as good as F by the estimators' counts, yet near
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
@@ -506,6 +535,23 @@ def _median(x: np.ndarray) -> float:
     n = x.size
     middle = np.partition(x, [(n - 1) // 2, n // 2])
     return 0.5 * (middle[(n - 1) // 2] + middle[n // 2])
+
+
+def _refined(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
+    """``model`` with H and F re-estimated by least squares (DLT, normalised 8-point) on the pairs
+    xa <-> xb (M, 2) within its fit thresholds; None when either has too few of them or fails."""
+    rh, rf = residuals(model, xa, xb)
+    on_h, on_f = rh <= model.px, rf <= model.epipolar_fit_px
+    if model.H is None or model.F is None or min(on_h.sum(), on_f.sum()) < MIN_SEEDS:
+        return None
+    try:
+        H, _ = cv2.findHomography(xa[on_h], xb[on_h], 0)
+        F, _ = cv2.findFundamentalMat(xa[on_f], xb[on_f], cv2.FM_8POINT)
+    except cv2.error:
+        return None
+    if H is None or F is None or F.shape != (3, 3):
+        return None
+    return dataclasses.replace(model, H=H, F=F)
 
 
 class _MotionChecks:
