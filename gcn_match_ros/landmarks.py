@@ -291,11 +291,11 @@ class LandmarkTracker:
                                                               np.concatenate([xb[on], bridge[1]]))
             # a camera pair's frames the same number of windows apart as last window's: that
             # window's model first (a rig moving steadily moves alike window after window),
-            # re-fitted when it explains fewer pairs than when it was fitted
+            # refined or re-fitted when it explains fewer pairs than when it was fitted
             cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
-            memory = self._windows_back(int(seen_ns[sel[0]]))
-            memory = None if memory is None else cams + (memory,)
-            model, fitted_share = self._motion_models.get(memory, (None, 0.0))
+            back = self._windows_back(int(seen_ns[sel[0]]))
+            remembered_as = None if back is None else cams + (back,)
+            model, fitted_share = self._motion_models.get(remembered_as, (None, 0.0))
             # residuals once per model on the frame pair's pairs (the fitted ones are among them)
             # and the bridge pairs
             fitted_in_sel = pair_claimed[sel]
@@ -318,8 +318,8 @@ class LandmarkTracker:
             inliers_h, inliers_f = checks.support
             if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
                 continue
-            if memory is not None:
-                self._motion_models[memory] = (model, fitted_share)
+            if remembered_as is not None:
+                self._motion_models[remembered_as] = (model, fitted_share)
             # H unless F explains clearly more pairs, counted by the residuals the check uses: a
             # small rig motion makes H almost as good as F by the estimators' counts, yet near
             # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
