@@ -539,7 +539,8 @@ def _median(x: np.ndarray) -> float:
 
 def _refined(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
     """``model`` with H and F re-estimated by least squares (DLT, normalised 8-point) on the pairs
-    xa <-> xb (M, 2) within its fit thresholds; None when either has too few of them or fails."""
+    xa <-> xb (M, 2) within its fit thresholds; None when it lacks either, when either has
+    fewer than MIN_SEEDS such pairs, or when a fit fails."""
     rh, rf = residuals(model, xa, xb)
     on_h, on_f = rh <= model.px, rf <= model.epipolar_fit_px
     if model.H is None or model.F is None or min(on_h.sum(), on_f.sum()) < MIN_SEEDS:
