@@ -304,7 +304,7 @@ class LandmarkTracker:
             if checks is not None and max(checks.support) < enough:
                 # least squares on the pairs it still explains first: a steady rig's motion drifts
                 # slowly, and a re-fit costs several times as much
-                refined = _refined(model, fa, fb)
+                refined = _refined(model, checks, fa, fb)
                 if refined is not None:
                     model, checks = refined, _MotionChecks(refined, xa[sel], xb[sel], fitted_in_sel, bridge)
             if checks is None or max(checks.support) < enough:
@@ -537,12 +537,11 @@ def _median(x: np.ndarray) -> float:
     return 0.5 * (middle[(n - 1) // 2] + middle[n // 2])
 
 
-def _refined(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
+def _refined(model: PairModel, checks: "_MotionChecks", xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
     """``model`` with H and F re-estimated by least squares (DLT, normalised 8-point) on the pairs
-    xa <-> xb (M, 2) within its fit thresholds; None when it lacks either, when either has
-    fewer than MIN_SEEDS such pairs, or when a fit fails."""
-    rh, rf = residuals(model, xa, xb)
-    on_h, on_f = rh <= model.px, rf <= model.epipolar_fit_px
+    it was fitted on, xa <-> xb (M, 2), that ``checks`` found within its fit thresholds; None when
+    it lacks either, when either has fewer than MIN_SEEDS such pairs, or when a fit fails."""
+    on_h, on_f = checks.inliers
     if model.H is None or model.F is None or min(on_h.sum(), on_f.sum()) < MIN_SEEDS:
         return None
     try:
@@ -557,11 +556,12 @@ def _refined(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Optional[PairM
 
 class _MotionChecks:
     """A motion model's residuals on a frame pair's pairs xa <-> xb (M, 2) and its support on
-    the pairs it is fitted on: those of ``fitted`` (M,) bool and the ``bridge`` pairs (or None).
+    the pairs it is fitted on: those of ``fitted`` (M,) bool, then the ``bridge`` pairs (or None).
 
     Attributes:
         residuals: (H's, F's) (M,) each (:func:`gcn_match_ros.edges.verify.residuals`);
-        support: (fitted pairs within H's threshold, within F's).
+        inliers: (within H's threshold, within F's) (F,) bool each, of the F pairs it is fitted on;
+        support: their counts.
     """
 
     def __init__(self, model, xa: np.ndarray, xb: np.ndarray, fitted: np.ndarray, bridge) -> None:
@@ -570,7 +570,8 @@ class _MotionChecks:
         if bridge is not None:
             bh, bf = residuals(model, *bridge)
             rh, rf = np.concatenate([rh, bh]), np.concatenate([rf, bf])
-        self.support = int((rh <= model.px).sum()), int((rf <= model.epipolar_fit_px).sum())
+        self.inliers = rh <= model.px, rf <= model.epipolar_fit_px
+        self.support = int(self.inliers[0].sum()), int(self.inliers[1].sum())
 
 
 class PerCameraNNLinker:
