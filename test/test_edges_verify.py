@@ -62,12 +62,19 @@ def test_residuals_are_symmetric_transfer_and_sampson_errors():
         forward = np.linalg.norm(geometry.transfer(H_TRUE, a[None])[0] - b)
         backward = np.linalg.norm(geometry.transfer(H_inv, b[None])[0] - a)
         assert res_h[m] == pytest.approx(0.5 * (forward + backward), rel=1e-12)
-    np.testing.assert_array_equal(res_f, geometry.sampson_distance(F_true, xa, xb))
+    np.testing.assert_allclose(res_f, geometry.sampson_distance(F_true, xa, xb), rtol=1e-9, atol=1e-12)
     assert res_f.max() < 1e-9  # true pairs under the true F
+    off = xb + rng.normal(0, 3, xb.shape)
+    np.testing.assert_allclose(residuals(PairModel(None, F_true), xa, off)[1],
+                               geometry.sampson_distance(F_true, xa, off), rtol=1e-9)
     only_h, missing_f = residuals(PairModel(H_TRUE, None), xa, xb)
     assert np.all(np.isinf(missing_f)) and np.array_equal(only_h, res_h)
     missing_h, _ = residuals(PairModel(None, F_true), xa, xb)
     assert np.all(np.isinf(missing_h))
+    singular_h, _ = residuals(PairModel(np.ones((3, 3)), None), xa, xb)
+    assert np.all(np.isinf(singular_h))  # no pair agrees with a singular H
+    empty_h, empty_f = residuals(PairModel(H_TRUE, F_true), np.zeros((0, 2)), np.zeros((0, 2)))
+    assert empty_h.shape == empty_f.shape == (0,)
 
 
 def test_calibrated_cameras_give_an_essential_matrix_with_the_true_epipolar_geometry():

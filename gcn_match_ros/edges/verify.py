@@ -31,9 +31,10 @@ import dataclasses
 from typing import Optional, Tuple
 
 import cv2
+import numba
 import numpy as np
 
-from ..geometry import sampson_distance, transfer, unproject
+from ..geometry import sampson_distance, unproject
 
 __all__ = ["PairModel", "fit_pair", "residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
            "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX"]
@@ -256,17 +257,51 @@ def _essential_with_cheirality(ua: np.ndarray, ub: np.ndarray, threshold: float,
 
 
 def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """(H symmetric transfer error, F Sampson distance) in pixels; inf where a model is missing."""
+    """(H symmetric transfer error, F Sampson distance) in pixels; inf where a model is missing
+    (and H's where it is singular).
+
+    Shapes: xa, xb (M, 2) -> (M,) float64 twice.
+    """
+    H, F = model.H, model.F
+    Hi = None
+    if H is not None:
+        try:
+            Hi = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            H = None
+    missing = np.zeros((3, 3))
+    return _residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
+                      missing if H is None else np.asarray(H, np.float64), missing if Hi is None else Hi,
+                      missing if F is None else np.asarray(F, np.float64), H is not None, F is not None)
+
+
+@numba.njit(cache=True, nogil=True)
+def _residuals(xa, xb, H, Hi, F, has_h, has_f):
+    """:func:`residuals`' arithmetic, one pass over the pairs (a window asks for it hundreds of
+    times, on a few dozen pairs each: numpy's per-call overhead was most of its cost). The sums
+    are in the order of :func:`gcn_match_ros.geometry.transfer` and
+    :func:`gcn_match_ros.geometry.sampson_distance`."""
     n = xa.shape[0]
     rh = np.full(n, np.inf)
     rf = np.full(n, np.inf)
-    if model.H is not None:
-        try:
-            Hi = np.linalg.inv(model.H)
-            rh = 0.5 * (np.linalg.norm(transfer(model.H, xa) - xb, axis=1)
-                        + np.linalg.norm(transfer(Hi, xb) - xa, axis=1))
-        except np.linalg.LinAlgError:
-            pass
-    if model.F is not None:
-        rf = sampson_distance(model.F, xa, xb)
+    for m in range(n):
+        x, y, u, v = xa[m, 0], xa[m, 1], xb[m, 0], xb[m, 1]
+        if has_h:
+            z = x * H[2, 0] + y * H[2, 1] + H[2, 2]
+            z = z if abs(z) > 1e-12 else 1e-12
+            dx = (x * H[0, 0] + y * H[0, 1] + H[0, 2]) / z - u
+            dy = (x * H[1, 0] + y * H[1, 1] + H[1, 2]) / z - v
+            zi = u * Hi[2, 0] + v * Hi[2, 1] + Hi[2, 2]
+            zi = zi if abs(zi) > 1e-12 else 1e-12
+            ex = (u * Hi[0, 0] + v * Hi[0, 1] + Hi[0, 2]) / zi - x
+            ey = (u * Hi[1, 0] + v * Hi[1, 1] + Hi[1, 2]) / zi - y
+            rh[m] = 0.5 * (np.sqrt(dx * dx + dy * dy) + np.sqrt(ex * ex + ey * ey))
+        if has_f:
+            a0 = x * F[0, 0] + y * F[0, 1] + F[0, 2]   # line in b
+            a1 = x * F[1, 0] + y * F[1, 1] + F[1, 2]
+            a2 = x * F[2, 0] + y * F[2, 1] + F[2, 2]
+            b0 = u * F[0, 0] + v * F[1, 0] + F[2, 0]   # line in a
+            b1 = u * F[0, 1] + v * F[1, 1] + F[2, 1]
+            den = np.sqrt(a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1)
+            rf[m] = abs(u * a0 + v * a1 + a2) / max(den, 1e-12)
     return rh, rf
