@@ -24,9 +24,10 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
   in no track only continues landmarks (one sighting of a new point is no landmark yet);
 - landmarks not seen for ``max_age_s`` are retired: the state stays bounded on endless streams.
 
-The cost: one descriptor product (keypoints x landmarks), then one compiled pass over it that
-keeps each keypoint's two best landmarks through the gate (the gate is tested only where a
-landmark could still enter them), the two halves of a large window's keypoints on two threads;
+The cost: one descriptor product (keypoints x landmarks), then one compiled pass that keeps each
+keypoint's two best landmarks, visiting only the landmarks its camera did not see and the
+sightings in the grid cells around it (the gate), the two halves of a large window's keypoints
+on two threads;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
 as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
 with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
@@ -343,19 +344,27 @@ class LandmarkTracker:
         (P,) per pair of :meth:`_motion_checked`.
         """
         gap = seen_ns != self._previous_ns
-        wanted = set(zip(pair_cam[gap].tolist(), seen_ns[gap].tolist()))
-        if not wanted:
+        if not gap.any():
             return {}
         consecutive = self._seen_ns[row_lm] == self._previous_ns
         before = self._xy_before[row_lm]                                   # (R, cameras, 2)
         b_row, b_cam = np.nonzero(consecutive[:, None] & ~np.isnan(before[:, :, 0]))
         b_ns = self._before_ns[row_lm][b_row]
+        # (camera, frame time) as one int64 key: the times ranked among those of both sides
+        times, rank = np.unique(np.concatenate([seen_ns[gap], b_ns]), return_inverse=True)
+        rank = rank.ravel()
+        n_gap = int(gap.sum())
+        frame = b_cam * times.size + rank[n_gap:]
+        wanted = np.isin(frame, pair_cam[gap] * times.size + rank[:n_gap])
+        b_row, b_cam, b_ns = b_row[wanted], b_cam[wanted], b_ns[wanted]
+        column = row_column[b_row]
+        key = frame[wanted] * self._xy.shape[1] + column
+        order = np.argsort(key, kind="stable")   # each group's pairs in row order
         out = {}
-        for c, t in wanted:
-            m = (b_cam == c) & (b_ns == t)
-            for col in np.unique(row_column[b_row[m]]).tolist():
-                sel = m & (row_column[b_row] == col)
-                out[(c, col, t)] = (before[b_row[sel], b_cam[sel]], row_xy[b_row[sel]].astype(np.float64))
+        for g in np.split(order, np.flatnonzero(np.diff(key[order])) + 1):
+            if g.size:
+                out[(int(b_cam[g[0]]), int(column[g[0]]), int(b_ns[g[0]]))] = (
+                    before[b_row[g], b_cam[g]], row_xy[b_row[g]].astype(np.float64))
         return out
 
     # -- state ---------------------------------------------------------------------------
@@ -626,42 +635,100 @@ def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cro
     """Per keypoint its best and second-best landmark (-1 and -inf where none) by the rule of
     the module docstring: a landmark its camera saw counts at ``sim`` >= ``min_similarity`` when
     the keypoint lies within ``gate_px`` of one of its last sightings (any camera's), one its
-    camera did not see at ``sim`` >= ``cross_similarity``. The first on ties, as argmax.
-    Compiled: one pass over keypoints x landmarks, no (N, L) temporaries.
+    camera did not see at ``sim`` >= ``cross_similarity``. The lower landmark index on ties, as
+    argmax. Compiled, no (N, L) temporaries: the sightings are binned on a grid of cells at
+    least ``gate_px`` wide, so a keypoint visits only the sightings of the 3 x 3 cells around it
+    and the landmarks its camera did not see (a pass over every landmark of every keypoint took
+    as long as the descriptor product).
 
     Shapes: sim (N, L) float32; column (N,); keypoints (N, 2); xy (L, cameras, 2), NaN where
     unseen -> (N,) int64 twice, (N,) float32 twice.
     """
     n, n_lm = sim.shape
+    n_cams = xy.shape[1]
     gate2 = gate_px * gate_px
     first = np.full(n, -1, np.int64)
     second = np.full(n, -1, np.int64)
     first_score = np.full(n, -np.inf, np.float32)
     second_score = np.full(n, -np.inf, np.float32)
+    # per camera, the landmarks it did not see (ascending), as one flat list with offsets
+    unseen = np.empty(n_lm * n_cams, np.int64)
+    unseen_start = np.zeros(n_cams + 1, np.int64)
+    for c in range(n_cams):
+        at = unseen_start[c]
+        for lm in range(n_lm):
+            if np.isnan(xy[lm, c, 0]):
+                unseen[at] = lm
+                at += 1
+        unseen_start[c + 1] = at
+    # every sighting on the grid
+    x0, y0, x1, y1 = np.inf, np.inf, -np.inf, -np.inf
+    for lm in range(n_lm):
+        for k in range(n_cams):
+            sx, sy = xy[lm, k, 0], xy[lm, k, 1]
+            if np.isfinite(sx) and np.isfinite(sy):
+                x0, y0, x1, y1 = min(x0, sx), min(y0, sy), max(x1, sx), max(y1, sy)
+    gridded = x0 <= x1
+    cell, nx, ny = 1.0, 1, 1
+    if gridded:
+        # cells at least the gate wide, and at most 256 x 256 of them
+        cell = max(gate_px, (x1 - x0) / 256.0, (y1 - y0) / 256.0, 1.0)
+        nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
+    cell_start = np.zeros(nx * ny + 1, np.int64)
+    if gridded:
+        for lm in range(n_lm):
+            for k in range(n_cams):
+                sx, sy = xy[lm, k, 0], xy[lm, k, 1]
+                if np.isfinite(sx) and np.isfinite(sy):
+                    cell_start[int((sx - x0) / cell) * ny + int((sy - y0) / cell) + 1] += 1
+    for g in range(nx * ny):
+        cell_start[g + 1] += cell_start[g]
+    fill = cell_start[:-1].copy()
+    sighting_lm = np.empty(cell_start[-1], np.int64)
+    sighting_xy = np.empty((cell_start[-1], 2))
+    if gridded:
+        for lm in range(n_lm):
+            for k in range(n_cams):
+                sx, sy = xy[lm, k, 0], xy[lm, k, 1]
+                if np.isfinite(sx) and np.isfinite(sy):
+                    g = int((sx - x0) / cell) * ny + int((sy - y0) / cell)
+                    sighting_lm[fill[g]] = lm
+                    sighting_xy[fill[g], 0], sighting_xy[fill[g], 1] = sx, sy
+                    fill[g] += 1
     for i in range(n):
         c = column[i]
         x, y = keypoints[i, 0], keypoints[i, 1]
-        for lm in range(n_lm):
+        for at in range(unseen_start[c], unseen_start[c + 1]):
+            lm = unseen[at]
             s = sim[i, lm]
-            if not s > second_score[i]:
-                continue  # cannot enter the two best, whatever the gate says
-            if np.isnan(xy[lm, c, 0]):
-                if not s >= cross_similarity:
-                    continue
-            else:
-                if not s >= min_similarity:
-                    continue
-                near = False
-                for k in range(xy.shape[1]):
-                    dx, dy = x - xy[lm, k, 0], y - xy[lm, k, 1]
-                    if dx * dx + dy * dy <= gate2:  # NaN (unseen) compares False
-                        near = True
-                        break
-                if not near:
-                    continue
-            if s > first_score[i]:
-                second[i], second_score[i] = first[i], first_score[i]
-                first[i], first_score[i] = lm, s
-            elif s > second_score[i]:
-                second[i], second_score[i] = lm, s
+            if s >= cross_similarity:
+                _enter_two_best(i, lm, s, first, second, first_score, second_score)
+        if not (gridded and np.isfinite(x) and np.isfinite(y)):
+            continue
+        gx, gy = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
+        for ix in range(int(max(gx - 1, 0)), int(min(gx + 1, nx - 1)) + 1):
+            for iy in range(int(max(gy - 1, 0)), int(min(gy + 1, ny - 1)) + 1):
+                g = ix * ny + iy
+                for at in range(cell_start[g], cell_start[g + 1]):
+                    lm = sighting_lm[at]
+                    if np.isnan(xy[lm, c, 0]):
+                        continue  # its camera did not see it: the cross rule above
+                    dx, dy = x - sighting_xy[at, 0], y - sighting_xy[at, 1]
+                    if dx * dx + dy * dy <= gate2:
+                        s = sim[i, lm]
+                        if s >= min_similarity:
+                            _enter_two_best(i, lm, s, first, second, first_score, second_score)
     return first, second, first_score, second_score
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _enter_two_best(i, lm, s, first, second, first_score, second_score):
+    """Landmark ``lm`` at similarity ``s`` into keypoint i's two best (higher similarity first,
+    then the lower index), once however often it is offered."""
+    if lm == first[i] or lm == second[i]:
+        return
+    if s > first_score[i] or (s == first_score[i] and lm < first[i]):
+        second[i], second_score[i] = first[i], first_score[i]
+        first[i], first_score[i] = lm, s
+    elif s > second_score[i] or (s == second_score[i] and lm < second[i]):
+        second[i], second_score[i] = lm, s
