@@ -278,9 +278,9 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
 @numba.njit(cache=True, nogil=True)
 def _residuals(xa, xb, H, Hi, F, has_h, has_f):
     """:func:`residuals`' arithmetic, one pass over the pairs (a window asks for it hundreds of
-    times, on a few dozen pairs each: numpy's per-call overhead was most of its cost). The sums
-    are in the order of :func:`gcn_match_ros.geometry.transfer` and
-    :func:`gcn_match_ros.geometry.sampson_distance`."""
+    times, on a few dozen pairs each: numpy's per-call overhead was most of its cost). The
+    formulas of :func:`gcn_match_ros.geometry.transfer` and
+    :func:`gcn_match_ros.geometry.sampson_distance`, equal to them up to rounding (~1e-13 px)."""
     n = xa.shape[0]
     rh = np.full(n, np.inf)
     rf = np.full(n, np.inf)
