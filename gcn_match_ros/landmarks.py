@@ -639,7 +639,9 @@ def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cro
     argmax. Compiled, no (N, L) temporaries: the sightings are binned on a grid of cells at
     least ``gate_px`` wide, so a keypoint visits only the sightings of the 3 x 3 cells around it
     and the landmarks its camera did not see (a pass over every landmark of every keypoint took
-    as long as the descriptor product).
+    as long as the descriptor product on a moving rig: 0.9 -> 0.2 ms for 482 keypoints x 524
+    landmarks); where the sightings around a keypoint are dense (a still scene that every camera
+    sees), that one pass in landmark order, which is then cheaper.
 
     Shapes: sim (N, L) float32; column (N,); keypoints (N, 2); xy (L, cameras, 2), NaN where
     unseen -> (N,) int64 twice, (N,) float32 twice.
@@ -651,73 +653,55 @@ def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cro
     second = np.full(n, -1, np.int64)
     first_score = np.full(n, -np.inf, np.float32)
     second_score = np.full(n, -np.inf, np.float32)
-    # per camera, the landmarks it did not see (ascending), as one flat list with offsets
-    unseen = np.empty(n_lm * n_cams, np.int64)
-    unseen_start = np.zeros(n_cams + 1, np.int64)
-    for c in range(n_cams):
-        at = unseen_start[c]
-        for lm in range(n_lm):
-            if np.isnan(xy[lm, c, 0]):
-                unseen[at] = lm
-                at += 1
-        unseen_start[c + 1] = at
-    # every sighting on the grid
-    x0, y0, x1, y1 = np.inf, np.inf, -np.inf, -np.inf
-    for lm in range(n_lm):
-        for k in range(n_cams):
-            sx, sy = xy[lm, k, 0], xy[lm, k, 1]
-            if np.isfinite(sx) and np.isfinite(sy):
-                x0, y0, x1, y1 = min(x0, sx), min(y0, sy), max(x1, sx), max(y1, sy)
-    gridded = x0 <= x1
-    cell, nx, ny = 1.0, 1, 1
-    if gridded:
-        # cells at least the gate wide, and at most 256 x 256 of them
-        cell = max(gate_px, (x1 - x0) / 256.0, (y1 - y0) / 256.0, 1.0)
-        nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
-    cell_start = np.zeros(nx * ny + 1, np.int64)
-    if gridded:
-        for lm in range(n_lm):
-            for k in range(n_cams):
-                sx, sy = xy[lm, k, 0], xy[lm, k, 1]
-                if np.isfinite(sx) and np.isfinite(sy):
-                    cell_start[int((sx - x0) / cell) * ny + int((sy - y0) / cell) + 1] += 1
-    for g in range(nx * ny):
-        cell_start[g + 1] += cell_start[g]
-    fill = cell_start[:-1].copy()
-    sighting_lm = np.empty(cell_start[-1], np.int64)
-    sighting_xy = np.empty((cell_start[-1], 2))
-    if gridded:
-        for lm in range(n_lm):
-            for k in range(n_cams):
-                sx, sy = xy[lm, k, 0], xy[lm, k, 1]
-                if np.isfinite(sx) and np.isfinite(sy):
-                    g = int((sx - x0) / cell) * ny + int((sy - y0) / cell)
-                    sighting_lm[fill[g]] = lm
-                    sighting_xy[fill[g], 0], sighting_xy[fill[g], 1] = sx, sy
-                    fill[g] += 1
+    unseen, unseen_start = _unseen_by_camera(xy)
+    x0, y0, cell, nx, ny, cell_start, sighting_lm, sighting_xy = _sighting_grid(xy, gate_px)
     for i in range(n):
         c = column[i]
         x, y = keypoints[i, 0], keypoints[i, 1]
+        # the 3 x 3 cells around it, clipped to the grid (none: off the grid or not finite)
+        lo_x, hi_x, lo_y, hi_y = 0, -1, 0, -1
+        if nx and np.isfinite(x) and np.isfinite(y):
+            gx, gy = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
+            if max(gx - 1, 0.0) <= min(gx + 1, nx - 1.0) and max(gy - 1, 0.0) <= min(gy + 1, ny - 1.0):
+                lo_x, hi_x = int(max(gx - 1, 0.0)), int(min(gx + 1, nx - 1.0))
+                lo_y, hi_y = int(max(gy - 1, 0.0)), int(min(gy + 1, ny - 1.0))
+        visits = 0
+        for ix in range(lo_x, hi_x + 1):
+            visits += cell_start[ix * ny + hi_y + 1] - cell_start[ix * ny + lo_y]
+        if 2 * visits + unseen_start[c + 1] - unseen_start[c] > n_lm:
+            # dense sightings around it (e.g. every camera saw every landmark): one pass in
+            # landmark order is cheaper than visiting them cell by cell (a grid visit reads
+            # sim out of order, about twice the cost)
+            for lm in range(n_lm):
+                s = sim[i, lm]
+                if not s >= second_score[i]:
+                    continue
+                if np.isnan(xy[lm, c, 0]):
+                    if s >= cross_similarity:
+                        _enter_two_best(i, lm, s, first, second, first_score, second_score)
+                elif s >= min_similarity:
+                    for k in range(n_cams):
+                        dx, dy = x - xy[lm, k, 0], y - xy[lm, k, 1]
+                        if dx * dx + dy * dy <= gate2:  # NaN (unseen) compares False
+                            _enter_two_best(i, lm, s, first, second, first_score, second_score)
+                            break
+            continue
         for at in range(unseen_start[c], unseen_start[c + 1]):
             lm = unseen[at]
             s = sim[i, lm]
-            if s >= cross_similarity:
+            if s >= cross_similarity and s >= second_score[i]:
                 _enter_two_best(i, lm, s, first, second, first_score, second_score)
-        if not (gridded and np.isfinite(x) and np.isfinite(y)):
-            continue
-        gx, gy = np.floor((x - x0) / cell), np.floor((y - y0) / cell)
-        for ix in range(int(max(gx - 1, 0)), int(min(gx + 1, nx - 1)) + 1):
-            for iy in range(int(max(gy - 1, 0)), int(min(gy + 1, ny - 1)) + 1):
-                g = ix * ny + iy
-                for at in range(cell_start[g], cell_start[g + 1]):
-                    lm = sighting_lm[at]
-                    if np.isnan(xy[lm, c, 0]):
-                        continue  # its camera did not see it: the cross rule above
-                    dx, dy = x - sighting_xy[at, 0], y - sighting_xy[at, 1]
-                    if dx * dx + dy * dy <= gate2:
-                        s = sim[i, lm]
-                        if s >= min_similarity:
-                            _enter_two_best(i, lm, s, first, second, first_score, second_score)
+        for ix in range(lo_x, hi_x + 1):
+            for at in range(cell_start[ix * ny + lo_y], cell_start[ix * ny + hi_y + 1]):
+                lm = sighting_lm[at]
+                s = sim[i, lm]
+                # the similarity first: it rules out most sightings (and any that cannot enter
+                # the two best) before the gate is computed
+                if not (s >= min_similarity and s >= second_score[i]) or np.isnan(xy[lm, c, 0]):
+                    continue  # (NaN: its camera did not see it, the cross rule above)
+                dx, dy = x - sighting_xy[at, 0], y - sighting_xy[at, 1]
+                if dx * dx + dy * dy <= gate2:
+                    _enter_two_best(i, lm, s, first, second, first_score, second_score)
     return first, second, first_score, second_score
 
 
@@ -732,3 +716,65 @@ def _enter_two_best(i, lm, s, first, second, first_score, second_score):
         first[i], first_score[i] = lm, s
     elif s > second_score[i] or (s == second_score[i] and lm < second[i]):
         second[i], second_score[i] = lm, s
+
+
+@numba.njit(cache=True, nogil=True)
+def _unseen_by_camera(xy):
+    """Per camera the landmarks it did not see, ascending: camera c's are
+    ``unseen[unseen_start[c]:unseen_start[c + 1]]``. Shapes: xy (L, cameras, 2) -> (L * cameras,),
+    (cameras + 1,) int64."""
+    n_lm, n_cams = xy.shape[0], xy.shape[1]
+    unseen = np.empty(n_lm * n_cams, np.int64)
+    unseen_start = np.zeros(n_cams + 1, np.int64)
+    for c in range(n_cams):
+        at = unseen_start[c]
+        for lm in range(n_lm):
+            if np.isnan(xy[lm, c, 0]):
+                unseen[at] = lm
+                at += 1
+        unseen_start[c + 1] = at
+    return unseen, unseen_start
+
+
+@numba.njit(cache=True, nogil=True)
+def _sighting_grid(xy, gate_px):
+    """Every finite sighting binned on a grid of square cells at least ``gate_px`` wide (and at
+    most 256 x 256 of them), column-major by cell x: cell (ix, iy) holds
+    ``sighting_lm / sighting_xy[cell_start[ix * ny + iy]:cell_start[ix * ny + iy + 1]]``, so the
+    cells iy = lo..hi of one ix are one slice.
+
+    Returns: x0, y0 (the grid's corner), cell (its width), nx, ny (0, 0: no sighting),
+    cell_start (nx * ny + 1,) int64, sighting_lm (S,) int64, sighting_xy (S, 2).
+    """
+    n_lm, n_cams = xy.shape[0], xy.shape[1]
+    sighting_lm = np.empty(n_lm * n_cams, np.int64)
+    sighting_xy = np.empty((n_lm * n_cams, 2))
+    count = 0
+    x0, y0, x1, y1 = np.inf, np.inf, -np.inf, -np.inf
+    for lm in range(n_lm):
+        for k in range(n_cams):
+            sx, sy = xy[lm, k, 0], xy[lm, k, 1]
+            if np.isfinite(sx) and np.isfinite(sy):
+                sighting_lm[count], sighting_xy[count, 0], sighting_xy[count, 1] = lm, sx, sy
+                x0, y0, x1, y1 = min(x0, sx), min(y0, sy), max(x1, sx), max(y1, sy)
+                count += 1
+    if count == 0:
+        return 0.0, 0.0, 1.0, 0, 0, np.zeros(1, np.int64), sighting_lm[:0], sighting_xy[:0]
+    cell = max(gate_px, (x1 - x0) / 256.0, (y1 - y0) / 256.0, 1.0)
+    nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
+    of = np.empty(count, np.int64)
+    cell_start = np.zeros(nx * ny + 1, np.int64)
+    for at in range(count):
+        of[at] = int((sighting_xy[at, 0] - x0) / cell) * ny + int((sighting_xy[at, 1] - y0) / cell)
+        cell_start[of[at] + 1] += 1
+    for g in range(nx * ny):
+        cell_start[g + 1] += cell_start[g]
+    fill = cell_start[:-1].copy()
+    binned_lm = np.empty(count, np.int64)
+    binned_xy = np.empty((count, 2))
+    for at in range(count):
+        g = of[at]
+        binned_lm[fill[g]] = sighting_lm[at]
+        binned_xy[fill[g]] = sighting_xy[at]
+        fill[g] += 1
+    return x0, y0, cell, nx, ny, cell_start, binned_lm, binned_xy

@@ -178,9 +178,11 @@ def test_two_best_landmarks_known_answers():
     xy[3, 0] = (900, 900)   # camera 0 saw landmark 3 far away, camera 1 near the keypoint: the gate takes any camera's
     sim = np.array([[0.8, 0.8, 0.99, 0.7, 0.7],      # 0 and 1 tie in the gate (lower index first); 2 is out of it
                     [0.5, 0.5, 0.5, 0.5, 0.76],      # far from every sighting: only the cross rule (landmark 4)
-                    [0.8, 0.9, 0.9, 0.9, 0.9]], np.float32)  # camera 1: 0-2 unseen by it, need 0.75; 3 gated
-    keypoints = np.array([[101.0, 99.0], [5000.0, -3000.0], [1e4, 1e4]])
-    column = np.array([0, 0, 1])
+                    [0.8, 0.9, 0.9, 0.9, 0.9],       # camera 1: 0-2 unseen by it, need 0.75; 3 gated
+                    [0.9, 0.9, 0.9, 0.9, 0.8],       # absurd or NaN coordinates: the cross rule only
+                    [0.9, 0.9, 0.9, 0.9, 0.8]], np.float32)
+    keypoints = np.array([[101.0, 99.0], [5000.0, -3000.0], [1e4, 1e4], [1e300, -1e300], [nan, 5.0]])
+    column = np.array([0, 0, 1, 0, 0])
     first, second, s1, s2 = _two_best_landmarks(sim, column, keypoints, xy, np.float64(40.0), np.float32(0.45),
                                                 np.float32(0.75))
     # keypoint 0: gated 0, 1 (tie at 0.8) and 3 (near its camera-1 sighting, 0.7); 4 unseen by camera 0, below 0.75
@@ -188,6 +190,7 @@ def test_two_best_landmarks_known_answers():
     assert (first[1], second[1]) == (4, -1) and s2[1] == -np.inf   # 0.76 >= 0.75 for a landmark camera 0 never saw
     # keypoint 2 (camera 1, far outside the sightings): landmarks 1, 2 by the cross rule (0.9 each, lower index first)
     assert (first[2], second[2]) == (1, 2)
+    assert (first[3], second[3]) == (first[4], second[4]) == (4, -1)
 
 
 def test_best_per_unit_known_answers():
