@@ -41,7 +41,6 @@ are wrong and random, and no model explains enough of them.
 """
 from __future__ import annotations
 
-import math
 from typing import Dict, List, Optional, Tuple
 
 import numba
@@ -52,7 +51,7 @@ from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
 from .candidates import EdgeConfig
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
-from .verify import MIN_SEEDS, PairModel
+from .verify import MIN_SEEDS, PairModel, sampson_error_px, transfer_error_px
 
 __all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
 
@@ -257,8 +256,9 @@ class TrackCheck(MergeTest):
 def _track_agrees(data, members, n_a, n_b):
     """:class:`TrackCheck`'s test: every pair of a first-track member x and a second-track
     member y is a kept pair, agrees with its verified view pair's model within CHAIN_SLACK x
-    its tolerance (residuals as :func:`.verify.residuals`), lies in an unverifiable view pair,
-    or — in an unverified one — has MIN_WITNESSES members in views verified against both."""
+    its tolerance (the residuals of :func:`.verify.residuals`, by the same formulas), lies in an
+    unverifiable view pair, or — in an unverified one — has MIN_WITNESSES members in views
+    verified against both."""
     (kept, n, view, offsets, kp, small, verified, pair, fwd_start, bwd_start, fwd, bwd, planar, tol,
      slack, min_witnesses, refused) = data
     for s in range(n_a):
@@ -278,12 +278,10 @@ def _track_agrees(data, members, n_a, n_b):
                 p = pair[a, b]
                 i, j = fwd_start[p] + xa - offsets[a], bwd_start[p] + yb - offsets[b]
                 if planar[p]:
-                    res = 0.5 * (math.hypot(fwd[i, 0] - kp[yb, 0], fwd[i, 1] - kp[yb, 1])
-                                 + math.hypot(bwd[j, 0] - kp[xa, 0], bwd[j, 1] - kp[xa, 1]))
+                    res = transfer_error_px(fwd[i, 0], fwd[i, 1], kp[yb, 0], kp[yb, 1], bwd[j, 0], bwd[j, 1],
+                                            kp[xa, 0], kp[xa, 1])
                 else:
-                    num = abs(kp[yb, 0] * fwd[i, 0] + kp[yb, 1] * fwd[i, 1] + fwd[i, 2])
-                    den = math.sqrt(fwd[i, 0] ** 2 + fwd[i, 1] ** 2 + bwd[j, 0] ** 2 + bwd[j, 1] ** 2)
-                    res = num / max(den, 1e-12)
+                    res = sampson_error_px(fwd[i, 0], fwd[i, 1], fwd[i, 2], bwd[j, 0], bwd[j, 1], kp[yb, 0], kp[yb, 1])
                 if res <= slack * tol[p]:
                     continue
                 refused[0] += 1

@@ -37,7 +37,8 @@ import numpy as np
 from ..geometry import sampson_distance, unproject
 
 __all__ = ["PairModel", "fit_pair", "residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
-           "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX"]
+           "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX",
+           "transfer_error_px", "sampson_error_px"]
 
 MIN_SEEDS = 12
 RANSAC_PX = 3.0         # inlier threshold of the homography (symmetric transfer error)
@@ -289,19 +290,35 @@ def _residuals(xa, xb, H, Hi, F, has_h, has_f):
         if has_h:
             z = x * H[2, 0] + y * H[2, 1] + H[2, 2]
             z = z if abs(z) > 1e-12 else 1e-12
-            dx = (x * H[0, 0] + y * H[0, 1] + H[0, 2]) / z - u
-            dy = (x * H[1, 0] + y * H[1, 1] + H[1, 2]) / z - v
             zi = u * Hi[2, 0] + v * Hi[2, 1] + Hi[2, 2]
             zi = zi if abs(zi) > 1e-12 else 1e-12
-            ex = (u * Hi[0, 0] + v * Hi[0, 1] + Hi[0, 2]) / zi - x
-            ey = (u * Hi[1, 0] + v * Hi[1, 1] + Hi[1, 2]) / zi - y
-            rh[m] = 0.5 * (np.sqrt(dx * dx + dy * dy) + np.sqrt(ex * ex + ey * ey))
+            rh[m] = transfer_error_px((x * H[0, 0] + y * H[0, 1] + H[0, 2]) / z,
+                                      (x * H[1, 0] + y * H[1, 1] + H[1, 2]) / z, u, v,
+                                      (u * Hi[0, 0] + v * Hi[0, 1] + Hi[0, 2]) / zi,
+                                      (u * Hi[1, 0] + v * Hi[1, 1] + Hi[1, 2]) / zi, x, y)
         if has_f:
-            a0 = x * F[0, 0] + y * F[0, 1] + F[0, 2]   # line in b
-            a1 = x * F[1, 0] + y * F[1, 1] + F[1, 2]
-            a2 = x * F[2, 0] + y * F[2, 1] + F[2, 2]
-            b0 = u * F[0, 0] + v * F[1, 0] + F[2, 0]   # line in a
-            b1 = u * F[0, 1] + v * F[1, 1] + F[2, 1]
-            den = np.sqrt(a0 * a0 + a1 * a1 + b0 * b0 + b1 * b1)
-            rf[m] = abs(u * a0 + v * a1 + a2) / max(den, 1e-12)
+            rf[m] = sampson_error_px(x * F[0, 0] + y * F[0, 1] + F[0, 2],    # F x_a: the line in b
+                                     x * F[1, 0] + y * F[1, 1] + F[1, 2],
+                                     x * F[2, 0] + y * F[2, 1] + F[2, 2],
+                                     u * F[0, 0] + v * F[1, 0] + F[2, 0],    # Fᵀ x_b: the line in a
+                                     u * F[0, 1] + v * F[1, 1] + F[2, 1], u, v)
     return rh, rf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def transfer_error_px(hx, hy, u, v, gx, gy, x, y):
+    """The symmetric transfer error of a pair (x, y) <-> (u, v) under a homography H, given
+    H (x, y) = (hx, hy) and H⁻¹ (u, v) = (gx, gy): the mean of the two distances, pixels. One
+    owner of the formula for :func:`residuals` and the track check
+    (:func:`gcn_match_ros.edges.consistency.TrackCheck`, which transfers each keypoint once)."""
+    dx, dy, ex, ey = hx - u, hy - v, gx - x, gy - y
+    return 0.5 * (np.sqrt(dx * dx + dy * dy) + np.sqrt(ex * ex + ey * ey))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def sampson_error_px(l0, l1, l2, m0, m1, u, v):
+    """The Sampson distance of a pair x_a <-> x_b = (u, v) under F, given the line
+    F x_a = (l0, l1, l2) in b and the first two entries (m0, m1) of Fᵀ x_b, pixels (as
+    :func:`gcn_match_ros.geometry.sampson_distance`). One owner of the formula for
+    :func:`residuals` and the track check."""
+    return abs(u * l0 + v * l1 + l2) / max(np.sqrt(l0 * l0 + l1 * l1 + m0 * m0 + m1 * m1), 1e-12)
