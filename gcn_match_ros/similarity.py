@@ -121,10 +121,12 @@ def most_similar(sim: np.ndarray, k_row: int, k_col: int) -> Tuple[np.ndarray, n
     """The ``k_row`` largest entries of every row and the ``k_col`` largest of every column of a
     similarity block, best first, the lower index first among equal values.
 
-    One compiled pass over the block for both directions, on the calling thread: inside a
-    window's solve torch.topk cost ~0.2 ms a call even on a 200 x 200 block (its thread pool
-    wakes for every call; an 8-camera window made 168 calls, 33 of its 120 ms), and above k = 7
-    it switches to a ~5x slower kernel.
+    Compiled, on the calling thread: inside a window's solve torch.topk cost ~0.2 ms a call even
+    on a 200 x 200 block (its thread pool wakes for every call; an 8-camera window made 168
+    calls, 33 of its 120 ms), and above k = 7 it switches to a ~5x slower kernel. A first pass
+    bounds every row's and column's k-th best from below (:func:`_kth_best_bounds`), so the
+    second pass sorts in only the few entries that can make a list (500 x 500, k = 11: ~17 a row
+    instead of ~54; 1.35 -> 0.85 ms). A transposed block is read as its contiguous original.
 
     Args:
         sim: (n, m) float32, finite.
@@ -137,26 +139,109 @@ def most_similar(sim: np.ndarray, k_row: int, k_col: int) -> Tuple[np.ndarray, n
     n, m = sim.shape
     if not (0 < k_row <= m and 0 < k_col <= n):
         raise ValueError(f"most_similar: k_row={k_row}, k_col={k_col} for a {n} x {m} block")
-    return _most_similar(np.asarray(sim, np.float32), int(k_row), int(k_col))
+    sim = np.asarray(sim, np.float32)
+    if not sim.flags.c_contiguous and sim.T.flags.c_contiguous:
+        col_val, col_idx, row_val, row_idx = _most_similar(sim.T, int(k_col), int(k_row))
+        return row_val, row_idx, col_val, col_idx
+    return _most_similar(np.ascontiguousarray(sim), int(k_row), int(k_col))
+
+
+#: Chunks whose maxima bound a row's (column's) k-th best (at least k): more give a tighter
+#: bound for a dearer first pass; 16 was the fastest at 500 x 500, k = 4 and 11.
+_BOUND_CHUNKS = 16
 
 
 @numba.njit(cache=True, nogil=True)
 def _most_similar(sim, k_row, k_col):
     n, m = sim.shape
+    row_bound, col_bound = _kth_best_bounds(sim, k_row, k_col)
     row_val = np.full((n, k_row), -np.inf, np.float32)
     row_idx = np.zeros((n, k_row), np.int64)
     col_val = np.full((m, k_col), -np.inf, np.float32)
     col_idx = np.zeros((m, k_col), np.int64)
     col_floor = np.full(m, -np.inf, np.float32)  # each column's k-th best so far, contiguous
+    row_hits = np.empty(m + 1, np.int64)
+    col_hits = np.empty(m + 1, np.int64)
     for i in range(n):
-        row_floor = np.float32(-np.inf)
+        row = sim[i]
+        bound = row_bound[i]
+        # the entries at or above a bound, in order; collected without branches
+        n_row = n_col = 0
         for j in range(m):
-            v = sim[i, j]
-            if v > row_floor:
-                row_floor = _insert(row_val[i], row_idx[i], v, j)
-            if v > col_floor[j]:
-                col_floor[j] = _insert(col_val[j], col_idx[j], v, i)
+            v = row[j]
+            row_hits[n_row] = j
+            n_row += v >= bound
+            col_hits[n_col] = j
+            n_col += v >= col_bound[j]
+        row_floor = np.float32(-np.inf)
+        for t in range(n_row):
+            j = row_hits[t]
+            if row[j] > row_floor:
+                row_floor = _insert(row_val[i], row_idx[i], row[j], j)
+        for t in range(n_col):
+            j = col_hits[t]
+            if row[j] > col_floor[j]:
+                col_floor[j] = _insert(col_val[j], col_idx[j], row[j], i)
     return row_val, row_idx, col_val, col_idx
+
+
+@numba.njit(cache=True, nogil=True)
+def _kth_best_bounds(sim, k_row, k_col):
+    """Lower bounds of every row's k_row-th and every column's k_col-th largest entry: the k-th
+    largest of the maxima of c >= k disjoint chunks (k chunks each hold an entry at least that
+    large). Rows are chunked by column modulo c and columns by row modulo c, so every maximum is
+    an elementwise maximum of contiguous runs.
+
+    Shapes: sim (n, m) C-contiguous -> (n,), (m,) float32.
+    """
+    n, m = sim.shape
+    c_row = min(m, max(k_row, _BOUND_CHUNKS))
+    row_bound = np.empty(n, np.float32)
+    maxima = np.empty(c_row, np.float32)
+    top = np.empty(k_row, np.float32)
+    for i in range(n):
+        row = sim[i]
+        maxima[:] = row[:c_row]
+        start = c_row
+        while start < m:
+            stop = min(start + c_row, m)
+            _maximum_into(maxima[:stop - start], row[start:stop])
+            start = stop
+        row_bound[i] = _kth_largest(maxima, top)
+    c_col = min(n, max(k_col, _BOUND_CHUNKS))
+    col_maxima = sim[:c_col].copy()
+    for i in range(c_col, n):
+        _maximum_into(col_maxima[i % c_col], sim[i])
+    col_bound = np.empty(m, np.float32)
+    column = np.empty(c_col, np.float32)
+    top = np.empty(k_col, np.float32)
+    for j in range(m):
+        column[:] = col_maxima[:, j]
+        col_bound[j] = _kth_largest(column, top)
+    return row_bound, col_bound
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline="always")
+def _maximum_into(acc, x):
+    """acc = max(acc, x) elementwise (finite inputs: fastmath lets it vectorise)."""
+    for j in range(acc.shape[0]):
+        acc[j] = max(acc[j], x[j])
+
+
+@numba.njit(cache=True, inline="always")
+def _kth_largest(values, top):
+    """The k-th largest of ``values``, k = len(top) <= len(values); ``top`` is scratch."""
+    k = top.shape[0]
+    top[:] = -np.inf
+    for t in range(values.shape[0]):
+        v = values[t]
+        if v > top[k - 1]:
+            s = k - 1
+            while s > 0 and v > top[s - 1]:
+                top[s] = top[s - 1]
+                s -= 1
+            top[s] = v
+    return top[k - 1]
 
 
 @numba.njit(cache=True, inline="always")

@@ -109,12 +109,14 @@ def test_most_similar_equals_a_stable_sort_of_rows_and_columns():
     x = rng.random((37, 29)).astype(np.float32)
     x[3, [4, 9, 17]] = x[3, 2]  # ties: the lower index first
     x[[5, 30], 8] = x[1, 8]
-    for k_row, k_col in ((1, 1), (2, 2), (7, 8), (11, 11), (29, 37)):
-        rv, ri, cv, ci = most_similar(x, k_row, k_col)
-        for block, values, indices, k in ((x, rv, ri, k_row), (x.T, cv, ci, k_col)):
-            order = np.argsort(-block, axis=1, kind="stable")[:, :k]
+    coarse = np.round(rng.random((60, 203)) * 8).astype(np.float32)  # ties everywhere, many chunks
+    for block, k_row, k_col in ((x, 1, 1), (x, 2, 2), (x, 7, 8), (x, 11, 11), (x, 29, 37), (x.T, 11, 4),
+                                (coarse, 11, 11), (coarse.T, 4, 17), (coarse, 203, 60)):
+        rv, ri, cv, ci = most_similar(block, k_row, k_col)
+        for rows, values, indices, k in ((block, rv, ri, k_row), (block.T, cv, ci, k_col)):
+            order = np.argsort(-rows, axis=1, kind="stable")[:, :k]
             np.testing.assert_array_equal(indices, order)
-            np.testing.assert_array_equal(values, np.take_along_axis(block, order, 1))
+            np.testing.assert_array_equal(values, np.take_along_axis(rows, order, 1))
     with pytest.raises(ValueError, match="k_row"):
         most_similar(x, 30, 1)
 
