@@ -13,6 +13,15 @@ the ``gcn`` solver's candidate edges (two-view fits, compiled loops that release
 its graph and network (torch, which releases it too). On 2 cores: the matcher node's 4 x 500
 p95 latency 125 -> 80 ms (benchmarks/results/node_latency.md), the offline stream solve 71 -> 63
 ms (stage_breakdown.md; the two threads slow each other, so the gain varies between runs).
+
+The cores are shared out between the two threads, since torch's OpenMP workers spin while
+they wait and take a core from whatever else runs. The second thread's torch ops (descriptor
+products) run on one thread: a second thread opening an OpenMP pool of its own gives the process
+more OpenMP threads than cores, and libgomp then stops spinning between parallel regions for the
+rest of the process (the 4 x 500 network alone: 5 -> 10 ms after one torch op on another thread);
+the products are bitwise the same on one thread or two. While ``fn`` runs, the caller's torch
+keeps one core fewer (on 2 cores: one), and gets it back when ``fn``'s result is taken: the 4 x
+500 stream solve 45 -> 34 ms, solve outputs identical.
 """
 from __future__ import annotations
 
@@ -21,6 +30,7 @@ import contextlib
 import threading
 from typing import Any, Callable, Iterator, Optional
 
+import torch
 from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
@@ -41,8 +51,10 @@ def single_blas_thread() -> None:
 class Pending:
     """The result of a function started by :func:`alongside`."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, future: Optional[concurrent.futures.Future]) -> None:
+    def __init__(self, fn: Callable[..., Any], args: tuple, future: Optional[concurrent.futures.Future],
+                 caller_threads: Optional[int] = None) -> None:
         self._fn, self._args, self._future = fn, args, future
+        self._caller_threads = caller_threads  # the caller's torch threads, to restore; None: not lowered
         self._done = False
         self._value: Any = None
 
@@ -53,17 +65,28 @@ class Pending:
             if self._future is None:  # not started: run here, now, as sequential code would
                 self._value = self._fn(*self._args)
             else:
-                self._value, seconds = self._future.result()
+                try:
+                    self._value, seconds = self._future.result()
+                finally:
+                    self._give_back_core()
                 add_to_active(seconds)
             self._done = True
         return self._value
+
+    def _give_back_core(self) -> None:
+        """The caller's torch threads back (once)."""
+        if self._caller_threads is not None:
+            torch.set_num_threads(self._caller_threads)
+            self._caller_threads = None
 
 
 @contextlib.contextmanager
 def alongside(fn: Callable[..., Any], *args: Any, parallel: bool = True) -> Iterator[Pending]:
     """Run ``fn(*args)`` on the process's second thread while the ``with`` body runs.
 
-    The block does not end before ``fn`` has, even when the body raises, so nothing ``fn``
+    Until ``fn``'s result is taken (or the block ends), the caller's torch runs on one thread
+    fewer (``torch.set_num_threads``, which also sets the count of threads that start using torch
+    meanwhile). The block does not end before ``fn`` has, even when the body raises, so nothing ``fn``
     touches (a stream's rig memory) is used by two windows at once. One second thread serves
     the process: calls from different threads queue for it. ``parallel=False`` — or a call
     from that thread itself, which would otherwise wait for itself — runs ``fn`` only when
@@ -76,10 +99,15 @@ def alongside(fn: Callable[..., Any], *args: Any, parallel: bool = True) -> Iter
         yield Pending(fn, args, None)
         return
     future = _second_thread().submit(_timed, fn, args)
+    threads = torch.get_num_threads()
+    if threads > 1:  # one core fewer for the caller's torch while fn has one
+        torch.set_num_threads(threads - 1)
+    pending = Pending(fn, args, future, threads if threads > 1 else None)
     try:
-        yield Pending(fn, args, future)
+        yield pending
     finally:
-        concurrent.futures.wait([future])
+        concurrent.futures.wait([pending._future])
+        pending._give_back_core()
 
 
 def _timed(fn: Callable[..., Any], args: tuple):
@@ -94,5 +122,17 @@ def _second_thread() -> concurrent.futures.ThreadPoolExecutor:
     global _pool
     with _pool_lock:
         if _pool is None:
-            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=_SECOND_THREAD)
+            threads = torch.get_num_threads()
+            _pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=_SECOND_THREAD,
+                                                          initializer=_one_torch_thread)
+            _pool.submit(int).result()  # the initializer runs now
+            # torch.set_num_threads also sets the count every thread takes at its first torch op
+            torch.set_num_threads(threads)
         return _pool
+
+
+def _one_torch_thread() -> None:
+    """This thread's torch ops on one thread; the count taken first, so that torch's lazy
+    per-thread set-up cannot later replace it with the process's count."""
+    torch.get_num_threads()
+    torch.set_num_threads(1)

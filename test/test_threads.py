@@ -25,6 +25,28 @@ def test_single_blas_thread_limits_numpys_blas_and_leaves_torch_alone():
         original.restore_original_limits()
 
 
+def test_torch_runs_on_one_thread_on_the_second_thread_and_other_threads_keep_their_count():
+    threads = torch.get_num_threads()
+
+    def torch_work():
+        torch.relu(torch.randn(1 << 16))  # an op torch parallelises
+        return torch.get_num_threads()
+
+    with alongside(torch_work) as pending:
+        assert torch.get_num_threads() == max(1, threads - 1)  # a core left for the second thread
+        assert pending.result() == 1
+        assert torch.get_num_threads() == threads  # given back with the result
+    assert torch.get_num_threads() == threads
+    with alongside(torch_work) as pending:
+        pass  # never asked for: given back when the block ends
+    assert torch.get_num_threads() == threads
+    later = []
+    t = threading.Thread(target=lambda: later.append(torch.get_num_threads()))
+    t.start()
+    t.join()
+    assert later == [threads]  # a thread started afterwards takes the process's count
+
+
 def test_alongside_runs_on_a_second_thread_and_adds_its_stages_to_the_callers():
     started = threading.Event()
 
