@@ -147,3 +147,38 @@ def test_edge_config_fits_and_trusts_with_its_own_settings():
     assert trusted is not None and trusted.H is None and trusted.F is not None  # F selected
     assert EdgeConfig(min_inliers=len(xa) + 1).trusted(model) is None
     assert EdgeConfig().trusted(None) is None
+
+
+def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges():
+    """Four calibrated views, six view pairs: a second thread helping with the pairs changes
+    nothing; every pair is computed once; a pair's error reaches the thread asking for the result."""
+    import threading
+
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges import candidates as cand
+    from gcn_match_ros.edges.rig_memory import RigMemory
+
+    problem = synthetic.random_scene_problem(synthetic.preset("easy", 4, "sift"), np.random.default_rng(5))
+    problem.camera_ids = tuple(f"cam{v}" for v in range(4))
+    alone = cand.candidate_edges(problem)
+    rig = RigMemory()
+    job = cand.CandidateJob(problem, rig=rig)
+    helper = threading.Thread(target=job.help)
+    helper.start()
+    shared = job.result()
+    helper.join()
+    for field in ("rows", "cols", "features", "res_px", "confident"):
+        np.testing.assert_array_equal(getattr(shared, field), getattr(alone, field))
+    assert shared.models.keys() == alone.models.keys() and rig.fitted == 6  # each pair once
+
+    calls = []
+
+    def failing(i, j):
+        calls.append((i, j))
+        raise RuntimeError(f"pair {i}, {j}")
+
+    broken = cand.CandidateJob(problem)
+    broken._pair = failing
+    with pytest.raises(RuntimeError, match="pair 0, 1"):
+        broken.result()
+    assert calls == [(0, 1)]  # no pair taken after an error

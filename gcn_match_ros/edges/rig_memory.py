@@ -18,10 +18,13 @@ ms). A pair that comes to overlap is found again within MAX_SKIPPED + 1 windows.
 
 The memory is per stream (one per matcher node, one per offline replay of a bag:
 :class:`gcn_match_ros.stream.StreamState`), used in window order; a problem without
-``camera_ids`` (a single file) never touches it.
+``camera_ids`` (a single file) never touches it. Within a window, two threads may look up
+different camera pairs at once (:class:`gcn_match_ros.edges.candidates.CandidateJob`): each
+pair's entries are its own, and the counts are kept under a lock.
 """
 from __future__ import annotations
 
+import threading
 from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
@@ -56,9 +59,14 @@ class RigMemory:
         self.fitted = 0
         self.invalidated = 0
         self.skipped = 0
+        self._counting = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._models)
+
+    def _count(self, name: str) -> None:
+        with self._counting:
+            setattr(self, name, getattr(self, name) + 1)
 
     def model(self, cameras: CameraPair, seeds_a: np.ndarray, seeds_b: np.ndarray,
               fit: Callable[[], Optional[PairModel]], min_inliers: int = MIN_INLIERS,
@@ -77,15 +85,15 @@ class RigMemory:
             rechecked = model.rechecked(seeds_a, seeds_b)
             if (rechecked.trusted(min_inliers, min_inlier_ratio)
                     and rechecked.inlier_share >= REUSE_SHARE * share_at_fit):
-                self.reused += 1
+                self._count("reused")
                 return rechecked
-            self.invalidated += 1
+            self._count("invalidated")
             del self._models[cameras]
         elif self._skips_left.get(cameras, 0) > 0:
             self._skips_left[cameras] -= 1
-            self.skipped += 1
+            self._count("skipped")
             return None
-        self.fitted += 1
+        self._count("fitted")
         model = fit()
         if model is None or not model.trusted(min_inliers, min_inlier_ratio):
             failures = self._failures.get(cameras, 0) + 1

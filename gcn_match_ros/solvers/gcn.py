@@ -21,7 +21,7 @@ import torch
 
 from ..descriptors import describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs, check_ratio
-from ..edges.candidates import EdgeConfig, candidate_edges
+from ..edges.candidates import CandidateJob, EdgeConfig
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.rig_memory import RigMemory
@@ -235,10 +235,11 @@ class GCNSolver(Solver):
               rig: Optional[RigMemory] = None):
         edges = self.edge_config if has_edge_head(self.model) and problem.n_keypoints else None
         # The candidate edges need neither the graph nor the network: with parallel, they are
-        # computed on the second thread meanwhile (threads.alongside); the stage "waiting" is
-        # the time this thread then idles for them.
-        with alongside(_timed_candidates, problem, edges, similarity, rig,
-                       parallel=self.config.parallel and edges is not None) as candidates:
+        # computed on the second thread meanwhile (threads.alongside), and this thread takes
+        # the view pairs still left once its network is done; the stage "waiting" is the time
+        # it then idles for the pairs the second thread is on.
+        job = CandidateJob(problem, edges, similarity, rig) if edges is not None else None
+        with alongside(_timed_candidates, job, parallel=self.config.parallel and job is not None) as candidates:
             if graph is None:
                 with stage("graph"):
                     graph = build_graph(problem, self.graph_config, similarity)
@@ -252,6 +253,7 @@ class GCNSolver(Solver):
                     return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                                       top_k=self.config.top_k), None
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
+                _timed_candidates(job, helping=True)
                 with stage("waiting"):
                     es = candidates.result()
                 if es.rows.shape[0] == 0:
@@ -279,10 +281,10 @@ class GCNSolver(Solver):
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
-def _timed_candidates(problem: Problem, edges: EdgeConfig, similarity: DescriptorSimilarity,
-                      rig: Optional[RigMemory]):
+def _timed_candidates(job: CandidateJob, helping: bool = False):
+    """The job's edges (``helping``: only its view pairs not yet taken), timed as candidates."""
     with stage("candidates"):
-        return candidate_edges(problem, edges, similarity, rig)
+        return job.help() if helping else job.result()
 
 
 def _with_descriptor_matches(problem: Problem, soft: SoftMatches, similarity: DescriptorSimilarity) -> SoftMatches:
