@@ -372,7 +372,9 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
     """For each keypoint of a, the most similar keypoint of b within ``px`` of its epipolar line
     and with a within ``px`` of b's line (:func:`gcn_match_ros.geometry.epipolar_distance_matrix`
     < px), and the same for each keypoint of b; -1 where none. The first on ties, as argmax.
-    Compiled: one pass over the na x nb pairs, no distance matrix.
+    Compiled: one pass over the na x nb pairs, no distance matrix; per keypoint of a, the
+    distances of b's keypoints to its line are computed first in a loop of their own, which
+    vectorises (0.40 -> 0.25 ms a 500 x 500 pair).
 
     Shapes: sim (na, nb); la (na, 3) lines in b, lb (nb, 3) lines in a; xa (na, 2), xb (nb, 2)
     -> (na,), (nb,) int64.
@@ -385,10 +387,13 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
     norm_b = np.empty(nb)
     for b in range(nb):
         norm_b[b] = max(math.sqrt(lb[b, 0] ** 2 + lb[b, 1] ** 2), 1e-12)
+    xb_x, xb_y = xb[:, 0].copy(), xb[:, 1].copy()
+    to_line = np.empty(nb)
     for a in range(na):
         norm_a = max(math.sqrt(la[a, 0] ** 2 + la[a, 1] ** 2), 1e-12)
+        _distances_to_line(to_line, la[a], norm_a, xb_x, xb_y)
         for b in range(nb):
-            if abs(la[a, 0] * xb[b, 0] + la[a, 1] * xb[b, 1] + la[a, 2]) / norm_a >= px:
+            if to_line[b] >= px:
                 continue  # most pairs: b is off a's line
             if abs(xa[a, 0] * lb[b, 0] + xa[a, 1] * lb[b, 1] + lb[b, 2]) / norm_b[b] < px:
                 s = sim[a, b]
@@ -397,6 +402,14 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
                 if s > score_a[b]:
                     score_a[b], best_a[b] = s, a
     return best_b, best_a
+
+
+@numba.njit(cache=True, nogil=True, inline="never")
+def _distances_to_line(out, line, norm, x, y):
+    """out[b] = |line . (x[b], y[b], 1)| / norm, a loop on its own that vectorises."""
+    l0, l1, l2 = line[0], line[1], line[2]
+    for b in range(out.shape[0]):
+        out[b] = abs(l0 * x[b] + l1 * y[b] + l2) / norm
 
 
 def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
