@@ -198,7 +198,7 @@ def _kth_best_bounds(sim, k_row, k_col):
     c_row = min(m, max(k_row, _BOUND_CHUNKS))
     row_bound = np.empty(n, np.float32)
     maxima = np.empty(c_row, np.float32)
-    top = np.empty(k_row, np.float32)
+    top, top_at = np.empty(k_row, np.float32), np.empty(k_row, np.int64)
     for i in range(n):
         row = sim[i]
         maxima[:] = row[:c_row]
@@ -207,17 +207,17 @@ def _kth_best_bounds(sim, k_row, k_col):
             stop = min(start + c_row, m)
             _maximum_into(maxima[:stop - start], row[start:stop])
             start = stop
-        row_bound[i] = _kth_largest(maxima, top)
+        row_bound[i] = _kth_largest(maxima, top, top_at)
     c_col = min(n, max(k_col, _BOUND_CHUNKS))
     col_maxima = sim[:c_col].copy()
     for i in range(c_col, n):
         _maximum_into(col_maxima[i % c_col], sim[i])
     col_bound = np.empty(m, np.float32)
     column = np.empty(c_col, np.float32)
-    top = np.empty(k_col, np.float32)
+    top, top_at = np.empty(k_col, np.float32), np.empty(k_col, np.int64)
     for j in range(m):
         column[:] = col_maxima[:, j]
-        col_bound[j] = _kth_largest(column, top)
+        col_bound[j] = _kth_largest(column, top, top_at)
     return row_bound, col_bound
 
 
@@ -229,19 +229,14 @@ def _maximum_into(acc, x):
 
 
 @numba.njit(cache=True, inline="always")
-def _kth_largest(values, top):
-    """The k-th largest of ``values``, k = len(top) <= len(values); ``top`` is scratch."""
-    k = top.shape[0]
+def _kth_largest(values, top, top_at):
+    """The k-th largest of ``values``, k = len(top) <= len(values); ``top`` and ``top_at`` (its
+    positions, int64) are scratch."""
     top[:] = -np.inf
     for t in range(values.shape[0]):
-        v = values[t]
-        if v > top[k - 1]:
-            s = k - 1
-            while s > 0 and v > top[s - 1]:
-                top[s] = top[s - 1]
-                s -= 1
-            top[s] = v
-    return top[k - 1]
+        if values[t] > top[top.shape[0] - 1]:
+            _insert(top, top_at, values[t], t)
+    return top[top.shape[0] - 1]
 
 
 @numba.njit(cache=True, inline="always")

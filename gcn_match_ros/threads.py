@@ -106,7 +106,7 @@ def alongside(fn: Callable[..., Any], *args: Any, parallel: bool = True) -> Iter
     try:
         yield pending
     finally:
-        concurrent.futures.wait([pending._future])
+        concurrent.futures.wait([future])
         pending._give_back_core()
 
 

@@ -42,8 +42,8 @@ from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
 
-__all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs", "EDGE_FEATURES",
-           "RANK_CAP"]
+__all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
+           "EDGE_FEATURES", "RANK_CAP"]
 
 EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
                  "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
