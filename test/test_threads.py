@@ -40,6 +40,10 @@ def test_torch_runs_on_one_thread_on_the_second_thread_and_other_threads_keep_th
     with alongside(torch_work) as pending:
         pass  # never asked for: given back when the block ends
     assert torch.get_num_threads() == threads
+    with pytest.raises(RuntimeError, match="body"):
+        with alongside(torch_work):
+            raise RuntimeError("body")
+    assert torch.get_num_threads() == threads  # and when the body raises
     later = []
     t = threading.Thread(target=lambda: later.append(torch.get_num_threads()))
     t.start()
@@ -78,9 +82,11 @@ def test_alongside_raises_the_functions_error_at_result():
     def fails():
         raise ValueError("bad window")
 
+    threads = torch.get_num_threads()
     with alongside(fails) as pending:
         with pytest.raises(ValueError, match="bad window"):
             pending.result()
+        assert torch.get_num_threads() == threads  # the caller's core given back all the same
 
 
 def test_the_block_waits_for_the_function_even_when_the_body_raises():
