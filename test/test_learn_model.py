@@ -174,3 +174,25 @@ def test_small_gcn_overfits_one_problem():
     false_rate = (pred & non_edges).sum() / non_edges.sum()
     assert recall > 0.8 and false_rate < 0.05, (recall, false_rate)
     assert time.perf_counter() - t0 < 15
+
+
+def test_edge_scores_at_inference_equal_the_training_path_across_chunks():
+    """More candidate edges than one inference chunk: the chunked, in-place path gives the same
+    logits as the differentiable one."""
+    from gcn_match_ros.learn.model import EDGE_CHUNK
+
+    torch.manual_seed(0)
+    model = GCN(GCNConfig(in_dim=12, widths=(8, 8), out_dim=8, groups=2, skip_layers=(), edge_features=5,
+                          edge_hidden=16)).eval()
+    E = torch.nn.functional.normalize(torch.randn(300, 8), dim=1)
+    m = 2 * EDGE_CHUNK + 7
+    rows, cols = torch.randint(0, 300, (m,)), torch.randint(0, 300, (m,))
+    x = torch.rand(m, 5)
+    trained = model.score_edges(E, rows, cols, x)
+    assert trained.requires_grad
+    with torch.no_grad():
+        inferred = model.score_edges(E, rows, cols, x)
+    assert inferred.shape == (m,)
+    torch.testing.assert_close(inferred, trained.detach(), rtol=0, atol=1e-6)
+    with torch.no_grad():
+        assert model.score_edges(E, rows[:0], cols[:0], x[:0]).shape == (0,)

@@ -39,6 +39,11 @@ from ..problem import Problem
 __all__ = ["GCNConfig", "GCN", "GraphSkipConv", "GraphGroupNorm", "gcn_norm", "normalized_adjacency",
            "graph_tensors", "collate", "embed_problem"]
 
+#: Candidate edges scored at a time at inference (:meth:`GCN.score_edges`): 4096 x 64 hidden
+#: floats (1 MiB) stay in cache; 2048 was slower (3.6 ms), 8192 the same (3.1 ms).
+EDGE_CHUNK = 4096
+
+
 # ---------------------------------------------------------------------------
 # Shape checks
 # ---------------------------------------------------------------------------
@@ -329,10 +334,25 @@ class GCN(nn.Module):
     def score_edges(self, E: Tensor, rows: Tensor, cols: Tensor, edge_x: Tensor) -> Tensor:
         """Logits of candidate edges (rows[m], cols[m]) from the embeddings and edge features.
 
+        Without gradients (inference) the edges go through the head :data:`EDGE_CHUNK` at a time
+        with in-place ReLUs: the hidden activations then stay in the CPU's cache (20 667 edges
+        of a 4 x 500 window: 6.2 -> 3.1 ms on 2 cores, bitwise the same logits).
+
         Shapes: E (N, out_dim), rows/cols (M,) int64, edge_x (M, edge_features) -> (M,)."""
+        if torch.is_grad_enabled():
+            return self._edge_logits(E, rows, cols, edge_x)
+        out = torch.empty(rows.shape[0], dtype=E.dtype, device=E.device)
+        for start in range(0, rows.shape[0], EDGE_CHUNK):
+            stop = start + EDGE_CHUNK
+            out[start:stop] = self._edge_logits(E, rows[start:stop], cols[start:stop], edge_x[start:stop], True)
+        return out
+
+    def _edge_logits(self, E: Tensor, rows: Tensor, cols: Tensor, edge_x: Tensor, in_place: bool = False) -> Tensor:
         ea, eb = E[rows], E[cols]
-        z = torch.cat([(ea * eb).sum(1, keepdim=True), (ea - eb).abs(), edge_x.to(E.dtype)], dim=1)
-        return self.edge_head(z).squeeze(1)
+        h = torch.cat([(ea * eb).sum(1, keepdim=True), (ea - eb).abs(), edge_x.to(E.dtype)], dim=1)
+        for layer in self.edge_head:
+            h = h.relu_() if in_place and isinstance(layer, nn.ReLU) else layer(h)
+        return h.squeeze(1)
 
     def forward(self, x: Tensor, edge_index: Tensor, edge_weight: Tensor,
                 node_ptr: Optional[Tensor] = None) -> Tensor:
