@@ -29,7 +29,6 @@ from typing import Dict, List, Optional, Tuple
 
 import numba
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
 import torch
 
@@ -249,9 +248,11 @@ class CandidateJob:
         tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool))
         tri_conf = _triangle_support(n, V, view, rows, colsi, conf)
         rmin = np.minimum(rh, rf)
-        feats = np.stack([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf,
-                          tri_all, tri_conf, _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided], axis=1)
-        return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats.astype(np.float32), rmin, conf, models)
+        feats = np.empty((rows.shape[0], len(EDGE_FEATURES)), np.float32)  # column by column: no float64 copy
+        for k, column in enumerate([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf, tri_all, tri_conf,
+                                    _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided]):
+            feats[:, k] = column
+        return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats, rmin, conf, models)
 
 
 def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig,
@@ -419,15 +420,31 @@ def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
     """
     if V < 3:
         return np.zeros(rows.shape[0])
-    r, c = rows[mask], cols[mask]
-    # sorted, duplicate-free neighbour lists (CSR) of the mask's graph
-    A = sp.csr_matrix((np.ones(2 * r.shape[0], np.int8), (np.concatenate([r, c]), np.concatenate([c, r]))),
-                      shape=(n, n))
-    A.sum_duplicates()
-    views_seen = _common_neighbour_views(A.indptr.astype(np.int64), A.indices.astype(np.int64),
-                                         np.asarray(view, np.int64), np.asarray(rows, np.int64),
+    indptr, indices = _neighbour_lists(n, np.asarray(rows[mask], np.int64), np.asarray(cols[mask], np.int64))
+    views_seen = _common_neighbour_views(indptr, indices, np.asarray(view, np.int64), np.asarray(rows, np.int64),
                                          np.asarray(cols, np.int64), V)
     return views_seen / (V - 2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _neighbour_lists(n, r, c):
+    """Neighbour lists (CSR: indptr (n + 1,), indices (2E,)) of the undirected edges (r[e], c[e]):
+    a counting sort by keypoint, O(E), unsorted within a list (an edge given twice lists its ends
+    twice, which :func:`_common_neighbour_views` counts once)."""
+    indptr = np.zeros(n + 1, np.int64)
+    for e in range(r.shape[0]):
+        indptr[r[e] + 1] += 1
+        indptr[c[e] + 1] += 1
+    for v in range(n):
+        indptr[v + 1] += indptr[v]
+    fill = indptr[:-1].copy()
+    indices = np.empty(2 * r.shape[0], np.int64)
+    for e in range(r.shape[0]):
+        indices[fill[r[e]]] = c[e]
+        fill[r[e]] += 1
+        indices[fill[c[e]]] = r[e]
+        fill[c[e]] += 1
+    return indptr, indices
 
 
 @numba.njit(cache=True, nogil=True)
