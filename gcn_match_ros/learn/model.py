@@ -40,7 +40,7 @@ __all__ = ["GCNConfig", "GCN", "GraphSkipConv", "GraphGroupNorm", "gcn_norm", "n
            "graph_tensors", "collate", "embed_problem"]
 
 #: Candidate edges scored at a time at inference (:meth:`GCN.score_edges`): 4096 x 64 hidden
-#: floats (1 MiB) stay in cache; 2048 was slower (3.6 ms), 8192 the same (3.1 ms).
+#: floats (1 MiB) stay in cache; at 4 x 500 2048 was slower (3.6 ms), 8192 the same (3.1 ms).
 EDGE_CHUNK = 4096
 
 
@@ -336,7 +336,7 @@ class GCN(nn.Module):
 
         Without gradients (inference) the edges go through the head :data:`EDGE_CHUNK` at a time
         with in-place ReLUs: the hidden activations then stay in the CPU's cache (20 667 edges
-        of a 4 x 500 window: 6.2 -> 3.1 ms on 2 cores, bitwise the same logits).
+        of a 4 x 500 window: 6.2 -> 3.1-4.0 ms on 2 cores, bitwise the same logits).
 
         Shapes: E (N, out_dim), rows/cols (M,) int64, edge_x (M, edge_features) -> (M,)."""
         if torch.is_grad_enabled():
