@@ -253,7 +253,8 @@ class GCNSolver(Solver):
                     return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                                       top_k=self.config.top_k), None
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
-                _timed_candidates(job, helping=True)
+                with stage("candidates"):
+                    job.help()
                 with stage("waiting"):
                     es = candidates.result()
                 if es.rows.shape[0] == 0:
@@ -281,10 +282,9 @@ class GCNSolver(Solver):
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
-def _timed_candidates(job: CandidateJob, helping: bool = False):
-    """The job's edges (``helping``: only its view pairs not yet taken), timed as candidates."""
+def _timed_candidates(job: CandidateJob):
     with stage("candidates"):
-        return job.help() if helping else job.result()
+        return job.result()
 
 
 def _with_descriptor_matches(problem: Problem, soft: SoftMatches, similarity: DescriptorSimilarity) -> SoftMatches:
