@@ -27,7 +27,9 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
 The cost: one descriptor product (keypoints x landmarks), then one compiled pass that keeps each
 keypoint's two best landmarks, visiting only the landmarks its camera did not see and the
 sightings in the grid cells around it (the gate), the two halves of a large window's keypoints
-on two threads;
+on two threads. That search needs no tracks (:meth:`LandmarkTracker.search`): in a stream it
+runs on the second thread while the solver finishes the window (:func:`gcn_match_ros.stream.solve_window`),
+and only the rest (:meth:`LandmarkTracker.associate`) follows the solve;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
 as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
 with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
@@ -38,7 +40,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-from typing import Dict, Iterator, Optional, Sequence, Tuple
+from typing import Dict, Iterator, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
 import numba
@@ -48,7 +50,7 @@ from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, residuals, trusted_support
 from .threads import alongside
 
-__all__ = ["LandmarkConfig", "LandmarkTracker", "PerCameraNNLinker"]
+__all__ = ["LandmarkConfig", "LandmarkTracker", "WindowSearch", "PerCameraNNLinker"]
 
 #: a continuation agrees with the motion model within this many times the model's tolerance
 MOTION_SLACK = 2.0
@@ -93,6 +95,22 @@ class LandmarkConfig:
     verify_motion: bool = True
 
 
+class WindowSearch(NamedTuple):
+    """One window's keypoints as :meth:`LandmarkTracker.search` leaves them for
+    :meth:`LandmarkTracker.associate`.
+
+    Shapes: column (N,) int64 camera column; keypoints (N, 2); desc (N, D) float32 L2-normalised;
+    candidates: (keypoint, landmark, score) (K,) each (:meth:`LandmarkTracker._candidates`), None
+    when there were no landmarks or keypoints.
+    """
+
+    column: np.ndarray
+    keypoints: np.ndarray
+    desc: np.ndarray
+    stamp_ns: int
+    candidates: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
 class LandmarkTracker:
     """Persistent landmark ids over a stream of windows (module docstring).
 
@@ -115,6 +133,7 @@ class LandmarkTracker:
         # explained when fitted)
         self._motion_models = {}
         self._recent_ns = collections.deque(maxlen=MOTION_MEMORY_WINDOWS)  # the last windows' times, newest first
+        self._searched: Optional[WindowSearch] = None  # the search associate() takes next
         self.born = 0
         self.retired = 0
 
@@ -124,8 +143,16 @@ class LandmarkTracker:
     def update(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
                descriptors: np.ndarray, track: np.ndarray, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
         """Associate one solved window; returns (N,) landmark id per keypoint (-1: none) and
-        (N,) the landmark's age in nanoseconds (since it was born; -1: none)."""
-        cfg = self.config
+        (N,) the landmark's age in nanoseconds (since it was born; -1: none).
+        :meth:`search` then :meth:`associate`."""
+        return self.associate(self.search(camera_ids, view_offsets, keypoints, descriptors, stamp_ns), track)
+
+    def search(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+               descriptors: np.ndarray, stamp_ns: int) -> "WindowSearch":
+        """The first half of :meth:`update`, which needs no tracks: retire the landmarks unseen
+        too long, then find each keypoint's candidate landmarks (:meth:`_candidates`). It can run
+        while the window is solved (:func:`gcn_match_ros.stream.solve_window`); the next call on
+        this tracker must be :meth:`associate` with its result."""
         n = keypoints.shape[0]
         view = np.repeat(np.arange(len(camera_ids)), np.diff(view_offsets))
         desc = descriptors.astype(np.float32)
@@ -135,12 +162,32 @@ class LandmarkTracker:
         self._retire(stamp_ns)
         self._camera_columns(camera_ids)
         column = np.array([self._cams[c] for c in camera_ids], np.int64)[view]   # (N,) camera column
+        candidates = self._candidates(column, keypoints, desc) if self._ids.size and n else None
+        self._searched = WindowSearch(column, keypoints, desc, stamp_ns, candidates)
+        return self._searched
+
+    def associate(self, searched: "WindowSearch", track: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """The second half of :meth:`update`: the window's units (from ``track`` (N,)) take
+        landmarks or found new ones. ``searched``: this tracker's last :meth:`search`.
+
+        Raises:
+            ValueError: ``searched`` is not the last search, or was associated already; ``track``
+                is not one entry per keypoint of the search.
+        """
+        if searched is not self._searched:
+            raise ValueError("associate() takes the tracker's last search() result, once")
+        if len(track) != searched.keypoints.shape[0]:
+            raise ValueError(f"track has {len(track)} entries for {searched.keypoints.shape[0]} keypoints")
+        self._searched = None
+        cfg = self.config
+        column, keypoints, desc, stamp_ns = searched.column, searched.keypoints, searched.desc, searched.stamp_ns
+        n = keypoints.shape[0]
         units = _Units(track)
         sizes = units.sizes
         best_lm = np.full(sizes.size, -1)
         best_score = np.zeros(sizes.size)
-        if self._ids.size and n:
-            member, lm, score = self._candidates(column, keypoints, desc)
+        if searched.candidates is not None:
+            member, lm, score = searched.candidates
             best_lm, best_score = _best_per_unit(units.of_keypoint[member], lm, score, sizes.size, cfg.ratio)
             if cfg.verify_motion:
                 claimed = _one_to_one(best_lm, best_score) >= 0
@@ -181,10 +228,10 @@ class LandmarkTracker:
 
     def _candidates(self, column, keypoints, desc):
         """Each keypoint's two best landmarks that pass the gate and their similarity (module
-        docstring); ``column`` (N,) is each keypoint's camera column. A large window's second half
-        of keypoints is scored on the second thread (:func:`gcn_match_ros.threads.alongside`):
-        the descriptor product and the compiled pass release the GIL, and the solve has left that
-        thread idle by now.
+        docstring); ``column`` (N,) is each keypoint's camera column. Called on the caller's
+        thread, a large window's second half of keypoints is scored on the second thread
+        (:func:`gcn_match_ros.threads.alongside`): the descriptor product and the compiled pass
+        release the GIL. Called on the second thread (beside a solve), all of it runs there.
 
         Returns:
             keypoint, landmark (K,) int64 and score (K,) float32, K <= 2N.

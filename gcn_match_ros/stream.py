@@ -21,6 +21,7 @@ import numpy as np
 from .edges.rig_memory import RigMemory
 from .landmarks import LandmarkTracker
 from .problem import Problem, Result
+from .threads import deferred
 
 __all__ = ["StreamState", "WindowLandmarks", "solve_window", "solve_stream"]
 
@@ -43,7 +44,8 @@ class WindowLandmarks:
     """The landmark of every keypoint of one window.
 
     Shapes: ids (N,) int64 (-1: none); ages_ns (N,) int64 nanoseconds since the landmark was
-    first seen (-1: none). ``seconds``: the time the association took (after the solve).
+    first seen (-1: none). ``seconds``: the time the association took after the solve (its
+    landmark search runs beside the solve where the solver leaves the second thread idle).
     """
 
     ids: np.ndarray
@@ -67,15 +69,18 @@ def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
         landmarks: False: no association at all (None instead of the landmarks; the tracker
             is not touched), for consumers that need only the window's own tracks.
     """
-    result = solver.solve(problem, stream=state)
     if not landmarks:
-        return result, None
+        return solver.solve(problem, stream=state), None
     if problem.camera_ids is None:
         none = np.full(problem.n_keypoints, -1, np.int64)
-        return result, WindowLandmarks(none, none.copy())
-    start = time.perf_counter()
-    ids, ages = state.landmarks.update(problem.camera_ids, problem.view_offsets, problem.keypoints,
-                                      problem.descriptors, result.track, int(stamp_ns))
+        return solver.solve(problem, stream=state), WindowLandmarks(none, none.copy())
+    # The landmark search needs no tracks: it runs on the second thread once the solve leaves
+    # that thread idle (Solver.solve's ``beside``), and the association then takes its result.
+    with deferred(state.landmarks.search, problem.camera_ids, problem.view_offsets, problem.keypoints,
+                  problem.descriptors, int(stamp_ns)) as search:
+        result = solver.solve(problem, stream=state, beside=search)
+        start = time.perf_counter()
+        ids, ages = state.landmarks.associate(search.result(), result.track)
     return result, WindowLandmarks(ids, ages, time.perf_counter() - start)
 
 

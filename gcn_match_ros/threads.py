@@ -10,7 +10,9 @@ that solve (the matcher node, ``gcn-match``) call :func:`single_blas_thread` onc
 
 :func:`alongside` runs one function on the process's second thread while the caller goes on:
 the ``gcn`` solver's candidate edges (two-view fits, compiled loops that release the GIL) beside
-its graph and network (torch, which releases it too). On 2 cores: the matcher node's 4 x 500
+its graph and network (torch, which releases it too). :func:`deferred` leaves the start to whoever
+knows when that thread is idle: a stream's landmark search waits for the solver to start it once
+its candidate edges are done (:func:`gcn_match_ros.stream.solve_window`). On 2 cores: the matcher node's 4 x 500
 p95 latency 125 -> 80 ms (benchmarks/results/node_latency.md), the offline stream solve 71 -> 63
 ms (stage_breakdown.md; the two threads slow each other, so the gain varies between runs).
 
@@ -35,11 +37,13 @@ from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "alongside", "Pending"]
+__all__ = ["single_blas_thread", "alongside", "deferred", "Pending"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None
 _pool_lock = threading.Lock()
+_cores_taken = 0     # started functions whose results are not yet taken (_take_core)
+_threads_before = 1  # the caller's torch threads before the first of them
 
 
 def single_blas_thread() -> None:
@@ -49,14 +53,38 @@ def single_blas_thread() -> None:
 
 
 class Pending:
-    """The result of a function started by :func:`alongside`."""
+    """``fn(*args)``, run on the process's second thread once :meth:`start`-ed, else on the caller's
+    thread when its :meth:`result` is asked for (made by :func:`deferred` and :func:`alongside`)."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, future: Optional[concurrent.futures.Future],
-                 caller_threads: Optional[int] = None) -> None:
-        self._fn, self._args, self._future = fn, args, future
-        self._caller_threads = caller_threads  # the caller's torch threads, to restore; None: not lowered
+    def __init__(self, fn: Callable[..., Any], args: tuple, parallel: bool = True) -> None:
+        self._fn, self._args = fn, args
+        # a call from the second thread itself would wait for itself
+        self._parallel = parallel and not threading.current_thread().name.startswith(_SECOND_THREAD)
+        self._future: Optional[concurrent.futures.Future] = None
+        self._holds_core = False  # the caller's torch runs on one thread fewer for it
         self._done = False
         self._value: Any = None
+
+    def start(self) -> None:
+        """Queue ``fn`` for the second thread now (it runs after what was queued before); from
+        then until its result is taken, the caller's torch runs on one thread fewer
+        (:func:`_take_core`). Nothing when already started or done, or when made with
+        ``parallel=False``."""
+        if self._future is not None or self._done or not self._parallel:
+            return
+        self._future = _second_thread().submit(_timed, self._fn, self._args)
+        _take_core()
+        self._holds_core = True
+
+    def withdraw(self) -> bool:
+        """Take back a start whose ``fn`` has not begun on the second thread (work queued before
+        it still runs there): it then runs at :meth:`result`, on the caller's thread. Returns
+        True when withdrawn."""
+        if self._future is None or not self._future.cancel():
+            return False
+        self._future = None
+        self._give_back_core()
+        return True
 
     def result(self) -> Any:
         """The function's return value (its exception re-raised), waiting for it if need be;
@@ -73,41 +101,73 @@ class Pending:
             self._done = True
         return self._value
 
+    def _finish(self) -> None:
+        """Wait for a started ``fn`` and give its core back."""
+        if self._future is not None:
+            concurrent.futures.wait([self._future])
+        self._give_back_core()
+
     def _give_back_core(self) -> None:
-        """The caller's torch threads back (once)."""
-        if self._caller_threads is not None:
-            torch.set_num_threads(self._caller_threads)
-            self._caller_threads = None
+        if self._holds_core:
+            self._holds_core = False
+            _give_back_core()
+
+
+def _take_core() -> None:
+    """One torch thread fewer for the caller while any started function has not been taken (the
+    first one lowers ``torch.set_num_threads``, which also sets the count of threads that start
+    using torch meanwhile)."""
+    global _cores_taken, _threads_before
+    with _pool_lock:
+        if _cores_taken == 0:
+            _threads_before = torch.get_num_threads()
+            if _threads_before > 1:
+                torch.set_num_threads(_threads_before - 1)
+        _cores_taken += 1
+
+
+def _give_back_core() -> None:
+    """The caller's torch threads back once the last started function is taken."""
+    global _cores_taken
+    with _pool_lock:
+        _cores_taken -= 1
+        if _cores_taken == 0 and _threads_before > 1:
+            torch.set_num_threads(_threads_before)
+
+
+@contextlib.contextmanager
+def deferred(fn: Callable[..., Any], *args: Any, parallel: bool = True) -> Iterator[Pending]:
+    """``fn(*args)`` for the second thread, started by whoever knows that thread is idle
+    (:meth:`Pending.start`: a solver, once its own work there is done), else run by
+    :meth:`Pending.result` on the caller's thread: the same results either way. The block does
+    not end before a started ``fn`` has, even when the body raises, so nothing ``fn`` touches is
+    used by two windows at once.
+
+    Yields:
+        :class:`Pending`, whose ``result()`` gives ``fn``'s return value.
+    """
+    pending = Pending(fn, args, parallel)
+    try:
+        yield pending
+    finally:
+        pending._finish()
 
 
 @contextlib.contextmanager
 def alongside(fn: Callable[..., Any], *args: Any, parallel: bool = True) -> Iterator[Pending]:
-    """Run ``fn(*args)`` on the process's second thread while the ``with`` body runs.
+    """Run ``fn(*args)`` on the process's second thread while the ``with`` body runs
+    (:func:`deferred`, started at once).
 
-    Until ``fn``'s result is taken (or the block ends), the caller's torch runs on one thread
-    fewer (``torch.set_num_threads``, which also sets the count of threads that start using torch
-    meanwhile). The block does not end before ``fn`` has, even when the body raises, so nothing ``fn``
-    touches (a stream's rig memory) is used by two windows at once. One second thread serves
-    the process: calls from different threads queue for it. ``parallel=False`` — or a call
-    from that thread itself, which would otherwise wait for itself — runs ``fn`` only when
+    One second thread serves the process: calls from different threads queue for it.
+    ``parallel=False`` — or a call from that thread itself — runs ``fn`` only when
     :meth:`Pending.result` is asked for, on the caller's thread: the same results, sequentially.
 
     Yields:
         :class:`Pending`, whose ``result()`` gives ``fn``'s return value.
     """
-    if not parallel or threading.current_thread().name.startswith(_SECOND_THREAD):
-        yield Pending(fn, args, None)
-        return
-    future = _second_thread().submit(_timed, fn, args)
-    threads = torch.get_num_threads()
-    if threads > 1:  # one core fewer for the caller's torch while fn has one
-        torch.set_num_threads(threads - 1)
-    pending = Pending(fn, args, future, threads if threads > 1 else None)
-    try:
+    with deferred(fn, *args, parallel=parallel) as pending:
+        pending.start()
         yield pending
-    finally:
-        concurrent.futures.wait([future])
-        pending._give_back_core()
 
 
 def _timed(fn: Callable[..., Any], args: tuple):

@@ -481,3 +481,26 @@ def test_a_still_scene_makes_no_motion_fits(motion_fits):
     in_track = np.flatnonzero(track >= 0)
     assert in_track.size > 0 and (ids[0][in_track] >= 0).all()
     assert np.array_equal(ids[1][in_track], ids[0][in_track]) and np.array_equal(ids[2], ids[1])
+
+
+def test_search_then_associate_is_update_and_takes_only_the_last_search():
+    """The search (no tracks needed) and the association, in two calls, as solve_window runs them
+    around the solve; an out-of-order or repeated association is refused."""
+    rng = np.random.default_rng(4)
+    base, xy = rng.normal(size=(20, 32)), rng.uniform(0, 600, (20, 2))
+    one, two = LandmarkTracker(), LandmarkTracker()
+    for t in range(3):
+        offs, kp, desc, track, _ = _window(rng, base, xy, np.arange(20), shift=2.0 * t)
+        ids, ages = one.update(CAMS, offs, kp, desc, track, t * PERIOD)
+        searched = two.search(CAMS, offs, kp, desc, t * PERIOD)
+        with pytest.raises(ValueError, match="entries for"):
+            two.associate(searched, track[:-1])
+        ids2, ages2 = two.associate(searched, track)
+        np.testing.assert_array_equal(ids, ids2)
+        np.testing.assert_array_equal(ages, ages2)
+        with pytest.raises(ValueError, match="last search"):
+            two.associate(searched, track)  # once
+    stale = two.search(CAMS, offs, kp, desc, 3 * PERIOD)
+    two.search(CAMS, offs, kp, desc, 3 * PERIOD)
+    with pytest.raises(ValueError, match="last search"):
+        two.associate(stale, track)

@@ -218,9 +218,9 @@ def test_epipolar_fit_follows_the_keypoints_localisation(one_torch_thread):
 
 
 def test_candidates_beside_the_network_change_nothing(one_torch_thread):
-    """parallel (the default) computes the candidate edges on a second thread: the same pairs,
-    scores and tracks as on one thread, for windows alone and for a stream's windows, whose rig
-    memory the second thread uses."""
+    """parallel (the default) computes the candidate edges on a second thread, then the stream's
+    landmark search: the same pairs, scores, tracks and landmark ids as on one thread, for
+    windows alone and for a stream's windows, whose rig memory the second thread uses."""
     from gcn_match_ros.data import synthetic
     from gcn_match_ros.stream import StreamState, solve_window
 
@@ -232,12 +232,51 @@ def test_candidates_beside_the_network_change_nothing(one_torch_thread):
         solver, state = solvers.create(spec), StreamState()
         alone = [solver.solve(p) for p in problems]
         rig = dataclasses.replace(problems[0], camera_ids=("cam0", "cam1", "cam2", "cam3"))
-        streamed = [solve_window(solver, rig, state, k * 10**8, landmarks=False)[0] for k in range(3)]
-        out[spec] = (alone + streamed, state.rig.reused)
+        streamed = [solve_window(solver, rig, state, k * 10**8) for k in range(3)]
+        out[spec] = (alone + [r for r, _ in streamed], state.rig.reused, [lm.ids for _, lm in streamed])
         assert "candidates" in alone[0].timings and "network" in alone[0].timings
-    (par, par_reused), (seq, seq_reused) = out.values()
+    (par, par_reused, par_ids), (seq, seq_reused, seq_ids) = out.values()
     assert par_reused == seq_reused > 0
+    for a, b in zip(par_ids, seq_ids):
+        np.testing.assert_array_equal(a, b)
+    assert (par_ids[-1] >= 0).any()
     for a, b in zip(par, seq):
         np.testing.assert_array_equal(a.track, b.track)
         np.testing.assert_array_equal(a.pair_rows, b.pair_rows)
         np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+
+
+@pytest.mark.parametrize("spec, slow, on_second_thread", [
+    ("gcn", "network", True), ("gcn", "candidates", False), ("gcn:parallel=false", None, False), ("nn", None, True)])
+def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_idle(monkeypatch, spec, slow,
+                                                                                  on_second_thread):
+    """``Solver.solve(beside=...)``: gcn queues it behind its candidate edges on the second thread
+    and takes it back when they outlast the network (it would hold up the edge head; it then runs
+    on the caller's thread after the solve); a solver with no work of its own there starts it
+    first; gcn on one thread leaves it to the caller. The solve's result is the same either way."""
+    import threading
+    import time
+
+    import gcn_match_ros.solvers.gcn as gcn_module
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.candidates import CandidateJob
+    from gcn_match_ros.threads import deferred
+
+    def slowed(fn):
+        def wrapper(*args, **kwargs):
+            time.sleep(0.3)
+            return fn(*args, **kwargs)
+        return wrapper
+
+    problem = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=60), np.random.default_rng(3))
+    solver = solvers.create(spec)
+    expected = solver.solve(problem).track
+    if slow == "network":
+        monkeypatch.setattr(gcn_module, "embed_problem", slowed(gcn_module.embed_problem))
+    elif slow == "candidates":
+        monkeypatch.setattr(CandidateJob, "_pair", slowed(CandidateJob._pair))
+    with deferred(threading.current_thread) as beside:
+        result = solver.solve(problem, beside=beside)
+        ran_on = beside.result()
+    assert (ran_on is not threading.current_thread()) == on_second_thread
+    np.testing.assert_array_equal(result.track, expected)

@@ -7,7 +7,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import alongside, single_blas_thread
+from gcn_match_ros.threads import alongside, deferred, single_blas_thread
 from gcn_match_ros.timing import StageTimes, stage
 
 
@@ -111,3 +111,70 @@ def test_alongside_called_from_the_second_thread_runs_inline_instead_of_waiting_
 
     with alongside(outer) as pending:
         assert pending.result() is True
+
+
+def test_deferred_runs_on_the_second_thread_once_started_else_on_the_caller_at_result():
+    threads = torch.get_num_threads()
+    with deferred(threading.current_thread) as never_started:
+        assert torch.get_num_threads() == threads  # nothing taken before start()
+    assert never_started.result() is threading.current_thread()
+    with deferred(lambda: (threading.current_thread(), torch.get_num_threads())) as pending:
+        pending.start()
+        pending.start()  # once
+        assert torch.get_num_threads() == max(1, threads - 1)
+        thread, its_threads = pending.result()
+        assert torch.get_num_threads() == threads
+    assert thread is not threading.current_thread() and its_threads == 1
+    with deferred(threading.current_thread, parallel=False) as sequential:
+        sequential.start()  # parallel=False: nothing started
+        assert sequential.result() is threading.current_thread()
+
+
+def test_a_started_deferred_is_waited_for_when_the_body_raises():
+    finished = threading.Event()
+    release = threading.Event()
+
+    def slow():
+        release.wait(5)
+        finished.set()
+
+    threads = torch.get_num_threads()
+    with pytest.raises(RuntimeError, match="body"):
+        with deferred(slow) as pending:
+            pending.start()
+            release.set()
+            raise RuntimeError("body")
+    assert finished.is_set() and torch.get_num_threads() == threads
+
+
+def test_the_callers_core_comes_back_when_the_last_started_function_is_taken():
+    """Functions queued one after another on the second thread (a solver's candidate edges, then
+    its caller's work beside the solve) take one core between them, given back after the last."""
+    threads = torch.get_num_threads()
+    with alongside(lambda: 1) as first:
+        with deferred(lambda: 2) as second:
+            second.start()
+            assert torch.get_num_threads() == max(1, threads - 1)
+            assert first.result() == 1
+            assert torch.get_num_threads() == max(1, threads - 1)  # the second still runs or waits
+            assert second.result() == 2
+            assert torch.get_num_threads() == threads
+
+
+def test_a_start_not_yet_begun_can_be_withdrawn_and_then_runs_on_the_caller():
+    threads = torch.get_num_threads()
+    release = threading.Event()
+    with alongside(release.wait, 5):  # the second thread busy
+        with deferred(threading.current_thread) as queued:
+            queued.start()
+            assert queued.withdraw()  # still queued behind the first
+            assert torch.get_num_threads() == max(1, threads - 1)  # the first still holds its core
+            release.set()
+            assert queued.result() is threading.current_thread()
+            assert not queued.withdraw()  # nothing started
+    assert torch.get_num_threads() == threads
+    with deferred(threading.current_thread) as begun:
+        begun.start()
+        thread = begun.result()
+        assert not begun.withdraw()  # done already
+    assert thread is not threading.current_thread()

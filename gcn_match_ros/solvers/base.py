@@ -29,6 +29,7 @@ from ..problem import Problem, Result
 from ..rounding import greedy_tracks
 from ..similarity import DescriptorSimilarity
 from ..stream import StreamState
+from ..threads import Pending
 from ..timing import StageTimes, stage
 
 __all__ = ["SoftMatches", "Solver", "SolverConfig", "build_config"]
@@ -153,12 +154,16 @@ class Solver(abc.ABC):
             candidates, or the graph beside other work).
         uses_rig_memory: :meth:`match` takes ``rig=`` (:class:`gcn_match_ros.edges.rig_memory.RigMemory`)
             and :meth:`solve` passes the stream's.
+        schedules_beside: :meth:`match` takes ``beside=`` (:meth:`solve`'s) and starts it once
+            its own work on the second thread is done; otherwise :meth:`solve` starts it before
+            the method runs, which leaves that thread idle.
     """
 
     name: ClassVar[str]
     Config: ClassVar[Type[SolverConfig]] = SolverConfig
     needs_graph: ClassVar[bool] = True
     uses_rig_memory: ClassVar[bool] = False
+    schedules_beside: ClassVar[bool] = False
 
     def __init__(self, config: Optional[SolverConfig] = None, **settings: Any) -> None:
         if config is not None and settings:
@@ -204,14 +209,24 @@ class Solver(abc.ABC):
         """
 
     def solve(self, problem: Problem, graph: Optional[CorrespondenceGraph] = None,
-              stream: Optional[StreamState] = None) -> Result:
+              stream: Optional[StreamState] = None, beside: Optional[Pending] = None) -> Result:
         """Prepare + graph build (unless ``graph`` is given, e.g. a synthetic noisy graph) + match +
         rounding. ``Result.seconds`` is the wall time, ``Result.timings`` its stages
         (:mod:`gcn_match_ros.timing`: graph, similarity, match, rounding and the method's own).
         ``stream``: the state of the stream this window belongs to (:mod:`gcn_match_ros.stream`),
-        for solvers that use one (``uses_rig_memory``); None: the window stands alone."""
+        for solvers that use one (``uses_rig_memory``); None: the window stands alone.
+        ``beside``: the caller's work that needs nothing of this solve (a stream's landmark search,
+        :func:`gcn_match_ros.stream.solve_window`), started on the second thread when the method
+        leaves it idle (``schedules_beside``); the caller takes its result."""
         times = StageTimes()
         start = time.perf_counter()
+        extra = {}
+        if self.uses_rig_memory and stream is not None:
+            extra["rig"] = stream.rig
+        if beside is not None and self.schedules_beside:
+            extra["beside"] = beside
+        elif beside is not None:
+            beside.start()
         with times.recording():
             self.prepare(problem)
             similarity = DescriptorSimilarity(problem)
@@ -219,10 +234,7 @@ class Solver(abc.ABC):
                 with stage("graph"):
                     graph = build_graph(problem, self.graph_config, similarity)
             with stage("match"):
-                if self.uses_rig_memory and stream is not None:
-                    soft, track = self.match(problem, graph, similarity, rig=stream.rig)
-                else:
-                    soft, track = self.match(problem, graph, similarity)
+                soft, track = self.match(problem, graph, similarity, **extra)
             if track is None:
                 with stage("rounding"):
                     track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,

@@ -32,7 +32,7 @@ from ..learn.model import embed_problem
 from ..node_features import feature_dim
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
-from ..threads import alongside
+from ..threads import Pending, alongside
 from ..timing import stage
 from .base import SoftMatches, Solver, SolverConfig
 from .registry import register
@@ -155,6 +155,7 @@ class GCNSolver(Solver):
     Config = GCNSolverConfig
     needs_graph = False  # match builds it, beside the candidate edges
     uses_rig_memory = True
+    schedules_beside = True
 
     def __init__(self, config=None, **settings) -> None:
         super().__init__(config, **settings)
@@ -232,7 +233,7 @@ class GCNSolver(Solver):
         return base if self.config.checkpoint else base + (":" if ":" not in base else ",") + "model=shipped"
 
     def match(self, problem: Problem, graph: Optional[CorrespondenceGraph], similarity: DescriptorSimilarity,
-              rig: Optional[RigMemory] = None):
+              rig: Optional[RigMemory] = None, beside: Optional[Pending] = None):
         edges = self.edge_config if has_edge_head(self.model) and problem.n_keypoints else None
         # The candidate edges need neither the graph nor the network: with parallel, they are
         # computed on the second thread meanwhile (threads.alongside), and this thread takes
@@ -240,6 +241,8 @@ class GCNSolver(Solver):
         # it then idles for the pairs the second thread is on.
         job = CandidateJob(problem, edges, similarity, rig) if edges is not None else None
         with alongside(_timed_candidates, job, parallel=self.config.parallel and job is not None) as candidates:
+            if beside is not None and self.config.parallel:
+                beside.start()  # the caller's work (Solver.solve), queued behind the candidate edges
             if graph is None:
                 with stage("graph"):
                     graph = build_graph(problem, self.graph_config, similarity)
@@ -253,6 +256,11 @@ class GCNSolver(Solver):
                     return SoftMatches.from_embedding(emb, problem.view_offsets, floor=self.config.floor,
                                                       top_k=self.config.top_k), None
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
+                # The caller's work has had the second thread while this one ran the network, or
+                # is taken back while that thread is still on the candidate edges: there it would
+                # hold up the edge head (a 4 x 500 window), after the solve it takes both threads.
+                if beside is not None:
+                    beside.withdraw()
                 with stage("candidates"):
                     job.help()
                 with stage("waiting"):
