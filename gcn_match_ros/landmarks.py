@@ -148,7 +148,7 @@ class LandmarkTracker:
         return self.associate(self.search(camera_ids, view_offsets, keypoints, descriptors, stamp_ns), track)
 
     def search(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
-               descriptors: np.ndarray, stamp_ns: int) -> "WindowSearch":
+               descriptors: np.ndarray, stamp_ns: int) -> WindowSearch:
         """The first half of :meth:`update`, which needs no tracks: retire the landmarks unseen
         too long, then find each keypoint's candidate landmarks (:meth:`_candidates`). It can run
         while the window is solved (:func:`gcn_match_ros.stream.solve_window`); the next call on
@@ -166,7 +166,7 @@ class LandmarkTracker:
         self._searched = WindowSearch(column, keypoints, desc, stamp_ns, candidates)
         return self._searched
 
-    def associate(self, searched: "WindowSearch", track: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    def associate(self, searched: WindowSearch, track: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """The second half of :meth:`update`: the window's units (from ``track`` (N,)) take
         landmarks or found new ones. ``searched``: this tracker's last :meth:`search`.
 

@@ -83,7 +83,7 @@ class Pending:
         if self._future is None or not self._future.cancel():
             return False
         self._future = None
-        self._give_back_core()
+        self._release_core()
         return True
 
     def result(self) -> Any:
@@ -96,7 +96,7 @@ class Pending:
                 try:
                     self._value, seconds = self._future.result()
                 finally:
-                    self._give_back_core()
+                    self._release_core()
                 add_to_active(seconds)
             self._done = True
         return self._value
@@ -105,9 +105,9 @@ class Pending:
         """Wait for a started ``fn`` and give its core back."""
         if self._future is not None:
             concurrent.futures.wait([self._future])
-        self._give_back_core()
+        self._release_core()
 
-    def _give_back_core(self) -> None:
+    def _release_core(self) -> None:
         if self._holds_core:
             self._holds_core = False
             _give_back_core()

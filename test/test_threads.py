@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.threads: numpy's BLAS on one thread, torch's pool untouched; work
 beside the caller on a second thread."""
+import contextlib
 import threading
 
 import numpy as np
@@ -89,7 +90,8 @@ def test_alongside_raises_the_functions_error_at_result():
         assert torch.get_num_threads() == threads  # the caller's core given back all the same
 
 
-def test_the_block_waits_for_the_function_even_when_the_body_raises():
+@pytest.mark.parametrize("started", ["alongside", "deferred, then start()"])
+def test_the_block_waits_for_the_function_even_when_the_body_raises(started):
     finished = threading.Event()
     release = threading.Event()
 
@@ -97,11 +99,23 @@ def test_the_block_waits_for_the_function_even_when_the_body_raises():
         release.wait(5)
         finished.set()
 
+    @contextlib.contextmanager
+    def running(fn):
+        if started == "alongside":
+            with alongside(fn) as pending:
+                yield pending
+        else:
+            with deferred(fn) as pending:
+                pending.start()
+                yield pending
+
+    threads = torch.get_num_threads()
     with pytest.raises(RuntimeError, match="body"):
-        with alongside(slow):
+        with running(slow):
             release.set()
             raise RuntimeError("body")
     assert finished.is_set()  # e.g. a stream's rig memory is free for the next window
+    assert torch.get_num_threads() == threads
 
 
 def test_alongside_called_from_the_second_thread_runs_inline_instead_of_waiting_for_itself():
@@ -128,23 +142,6 @@ def test_deferred_runs_on_the_second_thread_once_started_else_on_the_caller_at_r
     with deferred(threading.current_thread, parallel=False) as sequential:
         sequential.start()  # parallel=False: nothing started
         assert sequential.result() is threading.current_thread()
-
-
-def test_a_started_deferred_is_waited_for_when_the_body_raises():
-    finished = threading.Event()
-    release = threading.Event()
-
-    def slow():
-        release.wait(5)
-        finished.set()
-
-    threads = torch.get_num_threads()
-    with pytest.raises(RuntimeError, match="body"):
-        with deferred(slow) as pending:
-            pending.start()
-            release.set()
-            raise RuntimeError("body")
-    assert finished.is_set() and torch.get_num_threads() == threads
 
 
 def test_the_callers_core_comes_back_when_the_last_started_function_is_taken():
