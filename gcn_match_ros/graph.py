@@ -202,9 +202,11 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
         rows, cols, cos, rat, rnk = rows[keep], cols[keep], cos[keep], rat[keep], rnk[keep]
 
     # Merge the two directions of a pair; `count` says how many ends proposed it.
-    # (a sort and reduceat: np.unique with inverse and counts and np.minimum.at took 4x longer)
+    # (a sort and reduceat: np.unique with inverse and counts and np.minimum.at took 4x longer;
+    # numpy's default sort, as the copies of a key carry the same cosine and are reduced by
+    # their minimum: a stable sort of 24 k keys took 1.9 ms, the default 0.4)
     key = np.minimum(rows, cols) * n + np.maximum(rows, cols)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)
     key = key[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if key.size else np.zeros(0, np.int64)
     uniq = key[starts]
@@ -228,7 +230,7 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
 
     rows = np.concatenate([u_lo, u_hi])
     cols = np.concatenate([u_hi, u_lo])
-    order = np.lexsort((cols, rows))
+    order = np.argsort(rows * n + cols)  # unique keys: the (row, col) order (np.lexsort: 10x slower)
 
     def both(a: np.ndarray) -> np.ndarray:
         return np.concatenate([a, a])[order]
