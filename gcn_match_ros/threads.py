@@ -37,7 +37,7 @@ from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "alongside", "deferred", "Pending"]
+__all__ = ["single_blas_thread", "alongside", "deferred", "Pending", "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None
@@ -176,6 +176,27 @@ def _timed(fn: Callable[..., Any], args: tuple):
     with times.recording():
         value = fn(*args)
     return value, times.seconds
+
+
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """The calling thread's torch ops on one thread inside the block; its count restored after.
+
+    For results that must not depend on timing. The bits of a CPU matrix product can depend on
+    how many threads share it (the edge head's, on an Intel Xeon: 2 of a 4 x 500 window's 20 667
+    probabilities differ by one unit in the last place between one and two threads), and the
+    caller's count depends on whether a function started on the second thread has been taken yet
+    (:func:`_take_core`): a stream's scores then differed between runs of the same windows.
+    """
+    before = torch.get_num_threads()
+    if before == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _second_thread() -> concurrent.futures.ThreadPoolExecutor:

@@ -54,3 +54,28 @@ def test_edge_probabilities_are_the_sigmoid_of_the_head_logits():
     shifted = dataclasses.replace(edges, features=edges.features + 1.0)
     with torch.no_grad():
         assert not np.allclose(edge_probabilities(model, emb, shifted), got)
+
+
+def test_edge_probabilities_do_not_depend_on_the_callers_torch_threads():
+    """The caller's count varies with timing (threads._take_core); on a Xeon the shipped head's
+    GEMMs gave 2 of 5 833 probabilities of this window other last bits on two threads."""
+    from gcn_match_ros import solvers
+    from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
+
+    solver = solvers.create("gcn")
+    problem = random_scene_problem(rome16k(3, n_points=300), rng=1)
+    solver.prepare(problem)
+    edges = candidate_edges(problem, solver.edge_config)
+    with torch.inference_mode():
+        E, _ = embed_problem(solver.model, problem, solver.graph_config, solver.meta["feature_config"])
+    emb = torch.from_numpy(E)
+    got = {}
+    before = torch.get_num_threads()
+    try:
+        for threads in (2, 1):
+            torch.set_num_threads(threads)
+            got[threads] = edge_probabilities(solver.model, emb, edges)
+            assert torch.get_num_threads() == threads  # the caller's count given back
+    finally:
+        torch.set_num_threads(before)
+    np.testing.assert_array_equal(got[1], got[2])

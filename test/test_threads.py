@@ -8,7 +8,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import alongside, deferred, single_blas_thread
+from gcn_match_ros.threads import alongside, deferred, one_torch_thread, single_blas_thread
 from gcn_match_ros.timing import StageTimes, stage
 
 
@@ -175,3 +175,21 @@ def test_a_start_not_yet_begun_can_be_withdrawn_and_then_runs_on_the_caller():
         thread = begun.result()
         assert not begun.withdraw()  # done already
     assert thread is not threading.current_thread()
+
+
+def test_one_torch_thread_gives_the_callers_count_back_also_when_the_body_raises():
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        with one_torch_thread():
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError), one_torch_thread():
+            raise RuntimeError("boom")
+        assert torch.get_num_threads() == 2
+        torch.set_num_threads(1)
+        with one_torch_thread():
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
