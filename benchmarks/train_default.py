@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import functools
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -64,14 +65,18 @@ def main(argv=None):
     ap.add_argument("--chained-models", choices=("true", "false"), default="false",
                     help="whether gcn fits chained models for view pairs without a trusted one with this model "
                          "(stored with it; models/README.md: true for orb.pt)")
+    ap.add_argument("--graph-normalization", choices=("l2", "rootsift"), default=None,
+                    help="the descriptor normalization gcn builds this model's graph from at inference (stored "
+                         "with it; default: the one it was trained with; models/README.md: rootsift for the "
+                         "shipped models, the candidate edges' own)")
     ap.add_argument("--restamp", action="store_true",
-                    help="only store --threshold and --chained-models in the shipped model of --detector (weights "
-                         "unchanged; both are chosen after training: models/README.md)")
+                    help="only store --threshold, --chained-models and --graph-normalization in the shipped model "
+                         "of --detector (weights unchanged; all are chosen after training: models/README.md)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.restamp:
         target = SHIPPED_MODELS[DETECTOR_KINDS[args.detector]]
-        _install(target, target, args.threshold, args.chained_models == "true")
+        _install(target, target, args.threshold, args.chained_models == "true", args.graph_normalization)
         return
     train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
@@ -95,16 +100,21 @@ def main(argv=None):
     train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
-        _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true")
+        _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true",
+                 args.graph_normalization)
 
 
-def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool) -> None:
-    """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``
-    and ``chained_models`` to ``target`` (atomically: save_checkpoint)."""
+def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool,
+             graph_normalization: Optional[str] = None) -> None:
+    """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``,
+    ``chained_models`` and ``graph_normalization`` (None: none stored) to ``target`` (atomically:
+    save_checkpoint)."""
     model, meta = load_checkpoint(checkpoint)
-    config = dict(meta["config"], solver={"threshold": threshold, "chained_models": chained_models})
-    save_checkpoint(target, model, config, {"step": int(meta["extra"].get("step", 0))})
-    print("installed", target, "threshold", threshold, "chained_models", chained_models)
+    solver = {"threshold": threshold, "chained_models": chained_models}
+    if graph_normalization is not None:
+        solver["graph_normalization"] = graph_normalization
+    save_checkpoint(target, model, dict(meta["config"], solver=solver), {"step": int(meta["extra"].get("step", 0))})
+    print("installed", target, "solver settings", solver)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import scipy.sparse as sp
 from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS, cosine_distance
 from .problem import Problem
-from .similarity import DescriptorSimilarity, most_similar
+from .similarity import DescriptorSimilarity
 
 __all__ = ["GraphConfig", "GRAPH_PRESETS", "CorrespondenceGraph", "build_graph"]
 
@@ -188,8 +188,9 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
             sim = similarity.block(i, j, config.normalization).numpy()
             sim_lo, sim_hi = min(sim_lo, float(sim.min())), max(sim_hi, float(sim.max()))
             # k + 1 >= 2 best of each row and column: the candidates and the ratio test's second
-            best_r, idx_r, best_c, idx_c = most_similar(sim, min(max(config.k, 2), sim.shape[1]),
-                                                        min(max(config.k, 2), sim.shape[0]))
+            best_r, idx_r, best_c, idx_c = similarity.most_similar(i, j, config.normalization,
+                                                                   min(max(config.k, 2), sim.shape[1]),
+                                                                   min(max(config.k, 2), sim.shape[0]))
             parts.append(_directed_candidates(best_r, idx_r, config.k, offs[i], offs[j]))
             parts.append(_directed_candidates(best_c, idx_c, config.k, offs[j], offs[i]))
     if not parts:

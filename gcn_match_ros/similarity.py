@@ -11,15 +11,20 @@ Two threads may read one window's blocks at once (the ``gcn`` solver's graph and
 edges, :func:`gcn_match_ros.threads.alongside`): the cache is guarded by a lock, the products
 run outside it.
 
-Different normalizations are different similarities: the shipped models build their graph
-from L2-normalised descriptors and score candidates from RootSIFT ones, so such a window
-has two blocks per view pair, each computed once.
+A block's best rows and columns (:meth:`DescriptorSimilarity.most_similar`) are shared the
+same way: computed once per view pair, at the largest k asked for or declared (``top_k``), so
+the graph's top-4 lists are the first columns of the candidate edges' top-11 when both read
+the same normalization. A list being computed is waited for, not computed again.
+
+Different normalizations are different similarities: a window whose graph reads L2-normalised
+descriptors and whose candidates read RootSIFT ones has two blocks per view pair, each
+computed once.
 """
 from __future__ import annotations
 
 import collections
 import threading
-from typing import Dict, Tuple
+from typing import Dict, Mapping, Optional, Tuple
 
 import numba
 import numpy as np
@@ -40,20 +45,26 @@ class DescriptorSimilarity:
     Args:
         problem: the window.
         budget_bytes: most bytes of blocks kept at once.
+        top_k: normalization -> the k that :meth:`most_similar` computes at least, for a reader
+            that will ask for more than the first one does.
 
     Attributes:
         computed, recomputed: blocks computed, and of those computed again after eviction.
     """
 
-    def __init__(self, problem: Problem, budget_bytes: int = 256 * 2**20) -> None:
+    def __init__(self, problem: Problem, budget_bytes: int = 256 * 2**20,
+                 top_k: Optional[Mapping[str, int]] = None) -> None:
         self._descriptors = problem.descriptors
         self._offsets = problem.view_offsets
         self._budget = int(budget_bytes)
+        self._top_k = dict(top_k or {})
         self._normalized: Dict[str, torch.Tensor] = {}
         self._blocks: "collections.OrderedDict[Key, torch.Tensor]" = collections.OrderedDict()
         self._seen: set = set()
         self._bytes = 0
         self._lock = threading.Lock()
+        self._best: Dict[Key, Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._best_pending: Dict[Key, threading.Event] = {}
         self.computed = 0
         self.recomputed = 0
 
@@ -89,6 +100,47 @@ class DescriptorSimilarity:
             blk = di @ dj.T
         with self._lock:
             return self._keep(key, blk)
+
+    def most_similar(self, i: int, j: int, normalization: str, k_row: int, k_col: int
+                     ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`most_similar` of ``block(i, j)``: the ``k_row`` best entries of every row and
+        the ``k_col`` best of every column, computed once per view pair (module docstring).
+
+        Returns: row values (n_i, k_row) float32, row indices (n_i, k_row) int64, column values
+        (n_j, k_col), column indices (n_j, k_col) — views of the cached lists.
+        """
+        if i > j:
+            col_val, col_idx, row_val, row_idx = self.most_similar(j, i, normalization, k_col, k_row)
+            return row_val, row_idx, col_val, col_idx
+        key = (normalization, int(i), int(j))
+        while True:
+            with self._lock:
+                best = self._best.get(key)
+                if best is not None and best[0].shape[1] >= k_row and best[2].shape[1] >= k_col:
+                    break
+                pending = self._best_pending.get(key)
+                if pending is None:
+                    pending = self._best_pending[key] = threading.Event()
+                    mine = True
+                else:
+                    mine = False
+            if not mine:
+                pending.wait()
+                continue
+            try:
+                sim = self.block(i, j, normalization).numpy()
+                declared = self._top_k.get(normalization, 0)
+                best = most_similar(sim, min(max(k_row, declared), sim.shape[1]),
+                                    min(max(k_col, declared), sim.shape[0]))
+                with self._lock:
+                    self._best[key] = best
+            finally:
+                with self._lock:
+                    del self._best_pending[key]
+                pending.set()
+            break
+        row_val, row_idx, col_val, col_idx = best
+        return row_val[:, :k_row], row_idx[:, :k_row], col_val[:, :k_col], col_idx[:, :k_col]
 
     def _keep(self, key: Key, blk: torch.Tensor) -> torch.Tensor:
         """Cache a block just computed (the lock held); the copy another thread cached first wins."""

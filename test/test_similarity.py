@@ -140,3 +140,59 @@ def test_two_threads_reading_blocks_at_once_get_each_block_computed_once():
     assert all(x is y for x, y in zip(got["a"], got["b"]))
     assert sim.computed == len(NORMALIZATIONS) * 6 and sim.recomputed == 0
     assert sim.cached_bytes == sum(x.numel() * 4 for x in got["a"])
+
+
+def _lists_equal(got, want):
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+
+
+def test_a_view_pairs_best_lists_are_computed_once_and_shared_as_prefixes(monkeypatch):
+    import gcn_match_ros.similarity as module
+
+    problem = permuted_views_problem(n_views=3, n_points=30, noise=0.3)
+    calls = []
+    real = module.most_similar
+    monkeypatch.setattr(module, "most_similar", lambda s, kr, kc: calls.append((kr, kc)) or real(s, kr, kc))
+    sim = DescriptorSimilarity(problem, top_k={"rootsift": 11})
+    block = sim.block(0, 1, "rootsift").numpy()
+    # the first reader asks for 4: computed at the declared 11, and its 4 are the first 4 of 11
+    _lists_equal(sim.most_similar(0, 1, "rootsift", 4, 4), real(block, 4, 4))
+    _lists_equal(sim.most_similar(0, 1, "rootsift", 11, 11), real(block, 11, 11))
+    assert calls == [(11, 11)]
+    # the other direction swaps rows and columns, from the same lists
+    rv, ri, cv, ci = real(block, 11, 11)
+    _lists_equal(sim.most_similar(1, 0, "rootsift", 5, 3), (cv[:, :5], ci[:, :5], rv[:, :3], ri[:, :3]))
+    assert calls == [(11, 11)]
+    # undeclared: computed at what is asked for, again when more is asked for
+    _lists_equal(sim.most_similar(0, 2, "l2", 2, 2), real(sim.block(0, 2, "l2").numpy(), 2, 2))
+    _lists_equal(sim.most_similar(0, 2, "l2", 6, 6), real(sim.block(0, 2, "l2").numpy(), 6, 6))
+    assert calls[1:] == [(2, 2), (6, 6)]
+
+
+def test_two_threads_asking_for_one_pairs_best_lists_compute_them_once(monkeypatch):
+    import gcn_match_ros.similarity as module
+
+    problem = permuted_views_problem(n_views=2, n_points=40, noise=0.3)
+    started, release, calls = threading.Event(), threading.Event(), []
+    real = module.most_similar
+
+    def slow(s, kr, kc):
+        calls.append(threading.current_thread().name)
+        started.set()
+        assert release.wait(5)
+        return real(s, kr, kc)
+
+    monkeypatch.setattr(module, "most_similar", slow)
+    sim = DescriptorSimilarity(problem)
+    got = {}
+    first = threading.Thread(target=lambda: got.setdefault("first", sim.most_similar(0, 1, "l2", 3, 3)))
+    first.start()
+    assert started.wait(5)
+    second = threading.Thread(target=lambda: got.setdefault("second", sim.most_similar(0, 1, "l2", 3, 3)))
+    second.start()
+    release.set()
+    first.join(5)
+    second.join(5)
+    assert len(calls) == 1
+    _lists_equal(got["first"], got["second"])

@@ -120,6 +120,39 @@ def test_chained_models_follow_the_model_unless_set():
     assert solvers.create("gcn:chained_models=true").chained_models is True
 
 
+def test_graph_normalization_follows_the_model_unless_set():
+    """The shipped models build their graph from the candidate edges' RootSIFT similarities
+    (models/README.md), a checkpoint without that choice from the graph it was trained on."""
+    solver = solvers.create("gcn")
+    assert solver.meta["graph_config"].normalization == "l2"  # what it was trained with
+    assert solver.graph_config.normalization == solver.edge_config.normalization == "rootsift"
+    assert solvers.create("gcn:graph_normalization=l2").graph_config.normalization == "l2"
+    assert solvers.create("gcn:graph=knn8,graph_normalization=l2").graph_config.k == 8
+    with pytest.raises(ValueError, match="graph_normalization"):
+        solvers.create("gcn:graph_normalization=hellinger")
+
+
+def test_graph_and_candidate_edges_share_each_view_pairs_best_lists(monkeypatch, one_torch_thread):
+    """With one normalization, each view pair's block and best lists are computed once (its
+    top-11 serves the graph's top-4), and the solve is the one of lists computed apart."""
+    import gcn_match_ros.similarity as similarity
+    from gcn_match_ros.data import synthetic
+
+    problem = synthetic.random_scene_problem(synthetic.rome16k(4, n_points=120), rng=3)
+    shared = solvers.create("gcn").solve(problem)
+    calls = []
+    real = similarity.most_similar
+    monkeypatch.setattr(similarity, "most_similar", lambda s, kr, kc: calls.append((kr, kc)) or real(s, kr, kc))
+    solvers.create("gcn").solve(problem)
+    assert calls == [(11, 11)] * 6  # 4 views: 6 view pairs, one list each
+    monkeypatch.setattr(similarity.DescriptorSimilarity, "most_similar",
+                        lambda self, i, j, norm, kr, kc: real(self.block(i, j, norm).numpy(), kr, kc))
+    apart = solvers.create("gcn").solve(problem)
+    for a, b in ((shared.track, apart.track), (shared.pair_rows, apart.pair_rows),
+                 (shared.pair_scores, apart.pair_scores)):
+        np.testing.assert_array_equal(a, b)
+
+
 @pytest.mark.parametrize("descriptor", ["sift", "binary"])
 def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descriptor):
     """Views of 8 keypoints: too few for geometric verification (MIN_SEEDS), and the edge head,

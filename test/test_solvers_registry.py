@@ -36,7 +36,7 @@ def test_a_setting_given_twice_with_different_values_is_refused():
 
 def test_settings_of_names_the_configuration_fields():
     assert settings_of("nn") == ("graph", "threshold")
-    assert settings_of("gcn") == ("graph", "threshold", "checkpoint", "top_k", "floor", "device",
+    assert settings_of("gcn") == ("graph", "threshold", "checkpoint", "graph_normalization", "top_k", "floor", "device",
                                   "descriptor_fallback", "verify", "unverified_threshold", "chained_models",
                                   "rotation_cycles", "epipolar_ratio", "epipolar_fit_px", "epipolar_fine_px",
                                   "parallel")

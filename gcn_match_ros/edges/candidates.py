@@ -36,7 +36,7 @@ from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
-from ..similarity import DescriptorSimilarity, most_similar
+from ..similarity import DescriptorSimilarity
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
@@ -215,9 +215,14 @@ class CandidateJob:
         intrinsics = (problem.K[i], problem.K[j]) if problem.K is not None else (None, None)
         use_rig = self._rig is not None and problem.camera_ids is not None
         cameras = (problem.camera_ids[i], problem.camera_ids[j]) if use_rig else None
-        return _pair_edges(self._similarity.block(i, j, self._config.normalization), self._kp[a0:a1],
-                           self._kp[b0:b1], self._config, *intrinsics, rig=self._rig if use_rig else None,
-                           cameras=cameras)
+        norm = self._config.normalization
+        sim = self._similarity.block(i, j, norm)
+        # The RANK_CAP + 1 best similarities of every row and column, best first: the
+        # candidates, the ratio test and the (capped) ranks all read from them.
+        best = self._similarity.most_similar(i, j, norm, min(RANK_CAP + 1, sim.shape[1]),
+                                             min(RANK_CAP + 1, sim.shape[0]))
+        return _pair_edges(sim, best, self._kp[a0:a1], self._kp[b0:b1], self._config, *intrinsics,
+                           rig=self._rig if use_rig else None, cameras=cameras)
 
     def _edges(self) -> EdgeSet:
         """Every pair's edges together, with the features that need all pairs (triangle support)."""
@@ -255,20 +260,20 @@ class CandidateJob:
         return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats, rmin, conf, models)
 
 
-def _pair_edges(sim_t: torch.Tensor, xa: np.ndarray, xb: np.ndarray, config: EdgeConfig,
+def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                xa: np.ndarray, xb: np.ndarray, config: EdgeConfig,
                 K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
                 rig: Optional[RigMemory] = None, cameras: Optional[Tuple[str, str]] = None
                 ) -> Tuple[PairCandidates, Optional[PairModel]]:
     """Candidates of one view pair (a, b), their per-pair features and the pair's trusted model
-    (None without one); ``sim_t`` (n_a, n_b) cosines, K_a, K_b intrinsics (None: unknown; used as
-    :meth:`EdgeConfig.fit` says); ``rig``: the stream's remembered models, consulted for
-    ``cameras`` (both or neither)."""
+    (None without one); ``sim_t`` (n_a, n_b) cosines and ``best`` their min(RANK_CAP + 1, ...) best
+    rows and columns (:meth:`gcn_match_ros.similarity.DescriptorSimilarity.most_similar`), K_a, K_b
+    intrinsics (None: unknown; used as :meth:`EdgeConfig.fit` says); ``rig``: the stream's
+    remembered models, consulted for ``cameras`` (both or neither)."""
     na, nb = sim_t.shape
     sim = sim_t.numpy()
     k = min(config.k, na, nb)
-    # The RANK_CAP + 1 best similarities of every row and column, best first: the
-    # candidates, the ratio test and the (capped) ranks all read from them.
-    top_r, ir, top_c, ic = most_similar(sim, min(RANK_CAP + 1, nb), min(RANK_CAP + 1, na))
+    top_r, ir, top_c, ic = best
     best_r, sec_r = top_r[:, 0], top_r[:, 1]
     best_c, sec_c = top_c[:, 0], top_c[:, 1]
     ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])

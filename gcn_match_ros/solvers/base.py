@@ -184,6 +184,13 @@ class Solver(abc.ABC):
         """Score threshold of the rounding (the setting; a solver may derive it otherwise)."""
         return self.config.threshold
 
+    @property
+    def similarity_top_k(self) -> Dict[str, int]:
+        """normalization -> the k at which the window's similarity computes each view pair's best
+        lists (:class:`gcn_match_ros.similarity.DescriptorSimilarity` ``top_k``, read after
+        :meth:`prepare`): for a method whose later reader wants more of them than its first."""
+        return {}
+
     def describe(self) -> str:
         """``name:key=value,...`` for every setting that differs from the default."""
         default = self.Config()
@@ -229,7 +236,7 @@ class Solver(abc.ABC):
             beside.start()
         with times.recording():
             self.prepare(problem)
-            similarity = DescriptorSimilarity(problem)
+            similarity = DescriptorSimilarity(problem, top_k=self.similarity_top_k)
             if graph is None and self.needs_graph:
                 with stage("graph"):
                     graph = build_graph(problem, self.graph_config, similarity)

@@ -14,14 +14,14 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 import torch
 
-from ..descriptors import describe_descriptor_kind, descriptor_kind
+from ..descriptors import NORMALIZATIONS, describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs, check_ratio
-from ..edges.candidates import CandidateJob, EdgeConfig
+from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.rig_memory import RigMemory
@@ -56,6 +56,11 @@ class GCNSolverConfig(SolverConfig):
         graph: "checkpoint" (the graph the model was trained on) or a preset name.
         checkpoint: path of a checkpoint; "" = the shipped model for the problem's
             descriptor kind (:data:`SHIPPED_MODELS`).
+        graph_normalization: the descriptor normalization of the graph's similarities (``l2``,
+            ``rootsift``); "": the loaded model's choice (``config["solver"]["graph_normalization"]``:
+            ``rootsift`` for the shipped models, measured as accurate as their training graph's
+            ``l2``, models/README.md), else that of the graph above. When it is the candidate
+            edges' normalization the two share each view pair's similarity block and best lists.
         top_k: candidates kept per keypoint and view in the soft output.
         floor: scores at or below it are not listed.
         device: torch device for the forward pass ("cpu", "cuda").
@@ -106,6 +111,7 @@ class GCNSolverConfig(SolverConfig):
     graph: str = "checkpoint"
     threshold: float = -1.0  # < 0: the checkpoint's config["solver"]["threshold"], else 0.5
     checkpoint: str = ""
+    graph_normalization: str = ""
     top_k: int = 8
     floor: float = 0.01
     device: str = "cpu"
@@ -122,6 +128,9 @@ class GCNSolverConfig(SolverConfig):
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
             raise ValueError(f"unknown graph '{self.graph}'; choose 'checkpoint' or one of {sorted(GRAPH_PRESETS)}")
+        if self.graph_normalization and self.graph_normalization not in NORMALIZATIONS:
+            raise ValueError(f"graph_normalization must be one of {NORMALIZATIONS} or '' (the model's choice), "
+                             f"got {self.graph_normalization!r}")
         if not (0.0 <= self.threshold <= 1.0 or self.threshold == -1.0):
             raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
         if self.top_k < 1:
@@ -216,10 +225,19 @@ class GCNSolver(Solver):
 
     @property
     def graph_config(self) -> GraphConfig:
-        """The graph the model was trained on (``graph=checkpoint``), else the preset."""
-        if self.config.graph == "checkpoint":
-            return self.meta["graph_config"]
-        return GRAPH_PRESETS[self.config.graph]
+        """The graph the model was trained on (``graph=checkpoint``), else the preset; its
+        normalization as :attr:`GCNSolverConfig.graph_normalization` says."""
+        config = self.meta["graph_config"] if self.config.graph == "checkpoint" else GRAPH_PRESETS[self.config.graph]
+        normalization = self.config.graph_normalization or self._model_choice("graph_normalization", config.normalization)
+        return dataclasses.replace(config, normalization=normalization)
+
+    @property
+    def similarity_top_k(self) -> Dict[str, int]:
+        """The candidate edges' best lists (RANK_CAP + 1): computed at that k by whichever of the
+        graph (which reads the first 4) and the candidate edges asks first."""
+        if not has_edge_head(self.model):
+            return {}
+        return {self.edge_config.normalization: RANK_CAP + 1}
 
     @property
     def edge_config(self) -> EdgeConfig:
