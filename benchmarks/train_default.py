@@ -67,8 +67,8 @@ def main(argv=None):
                          "(stored with it; models/README.md: true for orb.pt)")
     ap.add_argument("--graph-normalization", choices=("l2", "rootsift"), default=None,
                     help="the descriptor normalization gcn builds this model's graph from at inference (stored "
-                         "with it; default: the one it was trained with; models/README.md: rootsift for the "
-                         "shipped models, the candidate edges' own)")
+                         "with it; default: the one already stored with the model, else the one it was trained "
+                         "with; models/README.md: rootsift for the shipped models, the candidate edges' own)")
     ap.add_argument("--restamp", action="store_true",
                     help="only store --threshold, --chained-models and --graph-normalization in the shipped model "
                          "of --detector (weights unchanged; all are chosen after training: models/README.md)")
@@ -107,10 +107,13 @@ def main(argv=None):
 def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool,
              graph_normalization: Optional[str] = None) -> None:
     """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``,
-    ``chained_models`` and ``graph_normalization`` (None: none stored) to ``target`` (atomically:
-    save_checkpoint)."""
+    ``chained_models`` and ``graph_normalization`` (None: the one ``checkpoint`` stores, if any) to
+    ``target`` (atomically: save_checkpoint). A restamp of the threshold alone thus keeps the
+    shipped models' graph choice."""
     model, meta = load_checkpoint(checkpoint)
     solver = {"threshold": threshold, "chained_models": chained_models}
+    if graph_normalization is None:
+        graph_normalization = (meta["config"].get("solver") or {}).get("graph_normalization")
     if graph_normalization is not None:
         solver["graph_normalization"] = graph_normalization
     save_checkpoint(target, model, dict(meta["config"], solver=solver), {"step": int(meta["extra"].get("step", 0))})

@@ -228,7 +228,8 @@ class GCNSolver(Solver):
         """The graph the model was trained on (``graph=checkpoint``), else the preset; its
         normalization as :attr:`GCNSolverConfig.graph_normalization` says."""
         config = self.meta["graph_config"] if self.config.graph == "checkpoint" else GRAPH_PRESETS[self.config.graph]
-        normalization = self.config.graph_normalization or self._model_choice("graph_normalization", config.normalization)
+        normalization = (self.config.graph_normalization
+                         or self._model_choice("graph_normalization", config.normalization))
         return dataclasses.replace(config, normalization=normalization)
 
     @property
