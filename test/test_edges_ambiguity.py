@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from gcn_match_ros.descriptors import cosine_distance
-from gcn_match_ros.edges.ambiguity import BAND_PX, MIN_JUDGED_COSINE, ambiguous_pairs, band_runner_up
+from gcn_match_ros.edges.ambiguity import BAND_PX, MIN_JUDGED_COSINE, ambiguous_pairs, band_runner_up, near_copies
 from gcn_match_ros.edges.consistency import WindowGeometry
 from gcn_match_ros.edges.verify import PairModel
 from gcn_match_ros.problem import Problem
@@ -95,3 +95,13 @@ def test_pairs_less_similar_than_the_judged_cosine_are_not_judged():
         assert cosine_distance(np.float64(own)) >= 0.9 * cosine_distance(np.float64(rival))  # a rival either way
         got = ambiguous_pairs(geometry, _Blocks({(0, 1): sim}), "l2", rows, cols, ratio=0.9)
         np.testing.assert_array_equal(got, [judged])
+
+
+def test_near_copies_are_the_pairs_at_or_above_the_judged_cosine_in_either_order():
+    xa, xb, sim = _scene()
+    geometry = _geometry(xa, xb, {})  # no model needed: any view pair is read
+    sim = sim.copy()
+    sim[1, 0] = MIN_JUDGED_COSINE  # exactly at the bar: a near-copy
+    rows, cols = np.array([0, 1, 2, 3 + 3]), np.array([3 + 0, 3 + 0, 3 + 1, 2])  # last one written (b, a)
+    got = near_copies(geometry, _Blocks({(0, 1): sim}), "l2", rows, cols)
+    np.testing.assert_array_equal(got, [True, True, False, True])

@@ -196,30 +196,37 @@ def test_device_setting_is_checked_before_any_model_is_loaded():
         assert abs(cpu - gpu) < 0.005
 
 
-def test_epipolar_ratio_only_removes_pairs_and_leaves_weak_descriptors_alone(one_torch_thread):
-    """The ambiguity rule (on by default at 0.9) drops pairs before the tracks are merged: what
-    it publishes is a subset of the pairs published without it. Generated scenes' weak
-    descriptors (true-match cosine ~0.66) are below the cosine it judges: the default solves
-    them exactly as with the rule off; a negative ratio is refused."""
+@pytest.mark.parametrize("default, bad, error, off, strict", [
+    (dict(epipolar_ratio=0.9), "epipolar_ratio=-1", "epipolar_ratio", "epipolar_ratio=0",
+     "epipolar_ratio=0.5,neighbours=0"),
+    (dict(neighbours=8, min_shared_neighbours=2), "neighbours=4,min_shared_neighbours=5", "neighbourhood",
+     "neighbours=0", "epipolar_ratio=0,neighbours=8,min_shared_neighbours=8"),
+])
+def test_rules_against_repetitions_only_remove_pairs_and_leave_weak_descriptors_alone(one_torch_thread, default, bad,
+                                                                                      error, off, strict):
+    """The ambiguity rule (Lowe's ratio along the epipolar line) and the neighbourhood rule, both
+    on by default, drop pairs before the tracks are merged: what each publishes is a subset of
+    the pairs published without it. Generated scenes' weak descriptors (true-match cosine ~0.66)
+    are below the cosine they judge: the default solves them exactly as with the rule off. Sharp
+    descriptors and a strict setting are judged; bad settings are refused."""
     from gcn_match_ros.data import synthetic
 
-    assert solvers.create("gcn").config.epipolar_ratio == 0.9
-    with pytest.raises(ValueError, match="epipolar_ratio"):
-        solvers.create("gcn:epipolar_ratio=-1")
+    config = solvers.create("gcn").config
+    assert {k: getattr(config, k) for k in default} == default
+    with pytest.raises(ValueError, match=error):
+        solvers.create(f"gcn:{bad}")
     problem = synthetic.random_scene_problem(synthetic.rome16k(3), np.random.default_rng([11, 0]))
-    off = solvers.create("gcn:epipolar_ratio=0").solve(problem)
-    default = solvers.create("gcn").solve(problem)
-    np.testing.assert_array_equal(default.track, off.track)
-    np.testing.assert_array_equal(default.pair_rows, off.pair_rows)
-    # sharp descriptors (cosines above the judged one) and a strict ratio: pairs are judged
+    without = solvers.create(f"gcn:{off}").solve(problem)
+    with_default = solvers.create("gcn").solve(problem)
+    np.testing.assert_array_equal(with_default.track, without.track)
+    np.testing.assert_array_equal(with_default.pair_rows, without.pair_rows)
+    # strict: the other rule off, as what one drops changes what the other judges
     sharp = synthetic.random_scene_problem(synthetic.rome16k(3, descriptor_noise=0.3), np.random.default_rng([11, 0]))
-    plain = solvers.create("gcn:epipolar_ratio=0").solve(sharp)
-    strict = solvers.create("gcn:epipolar_ratio=0.5").solve(sharp)
+    plain = solvers.create("gcn:epipolar_ratio=0,neighbours=0").solve(sharp)
+    judged = solvers.create(f"gcn:{strict}").solve(sharp)
     n = sharp.n_keypoints
-    before = set((plain.pair_rows * n + plain.pair_cols).tolist())
-    after = set((strict.pair_rows * n + strict.pair_cols).tolist())
-    assert after < before
-    assert is_cycle_consistent(strict.track, sharp.view_index)
+    assert set((judged.pair_rows * n + judged.pair_cols).tolist()) < set((plain.pair_rows * n + plain.pair_cols).tolist())
+    assert is_cycle_consistent(judged.track, sharp.view_index)
 
 
 def test_epipolar_fit_follows_the_keypoints_localisation(one_torch_thread):
@@ -313,3 +320,4 @@ def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_id
         ran_on = beside.result()
     assert (ran_on is not threading.current_thread()) == on_second_thread
     np.testing.assert_array_equal(result.track, expected)
+

@@ -33,12 +33,13 @@ from ..descriptors import cosine_distance
 from ..similarity import DescriptorSimilarity
 from .consistency import WindowGeometry
 
-__all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up", "check_ratio"]
+__all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up", "check_ratio", "near_copies"]
 
 #: the band around an epipolar line in which another keypoint competes with a pair's partner:
 #: about the 2 px a right match may lie off the true line plus a model's own error
 BAND_PX = 3.0
-#: pairs less similar than this (cosine) are not judged (module docstring)
+#: pairs less similar than this (cosine) are not judged (module docstring): not near-copies,
+#: so not repetitions (also the pairs :mod:`.neighbourhood`'s rule judges, :func:`near_copies`)
 MIN_JUDGED_COSINE = 0.8
 
 
@@ -148,4 +149,24 @@ def ambiguous_pairs(geometry: WindowGeometry, similarity: DescriptorSimilarity, 
         runner_up = band_runner_up(model.F, xy[offsets[a]:offsets[a + 1]], xy[offsets[b]:offsets[b + 1]], sim, ia, ib)
         own = cosine_distance(own_cosine[judged].astype(np.float64))
         out[sel] = np.isfinite(runner_up) & (own >= ratio * cosine_distance(runner_up))
+    return out
+
+
+def near_copies(geometry: WindowGeometry, similarity: DescriptorSimilarity, normalization: str,
+                rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Which pairs are similar enough to be a repetition of each other's point: cosine at least
+    :data:`MIN_JUDGED_COSINE` (the pairs the rules against repetitions judge), in any view pair.
+
+    Shapes: rows, cols (M,) global keypoint indices of different views -> (M,) bool.
+    """
+    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    out = np.zeros(rows.shape[0], bool)
+    view = geometry.view_index
+    lo, hi = np.where(view[rows] < view[cols], rows, cols), np.where(view[rows] < view[cols], cols, rows)
+    va, vb = view[lo], view[hi]
+    offsets = geometry.problem.view_offsets
+    for a, b in sorted(set(zip(va.tolist(), vb.tolist()))):
+        sel = np.flatnonzero((va == a) & (vb == b))
+        sim = similarity.block(a, b, normalization).numpy()
+        out[sel] = sim[lo[sel] - offsets[a], hi[sel] - offsets[b]] >= MIN_JUDGED_COSINE
     return out

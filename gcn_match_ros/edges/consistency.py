@@ -50,6 +50,7 @@ from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
 from .candidates import EdgeConfig
+from .neighbourhood import MIN_SHARED, followed_pairs
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
 from .verify import MIN_SEEDS, PairModel, sampson_error_px, transfer_error_px
 
@@ -299,15 +300,19 @@ def _track_agrees(data, members, n_a, n_b):
 
 
 def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
-                    threshold: float, chained_models: bool = False,
-                    rotation_cycles: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                    threshold: float, chained_models: bool = False, rotation_cycles: bool = False,
+                    neighbours: int = 0, min_shared: int = MIN_SHARED,
+                    judged: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
     (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
-    then gains the chained models of its unverified view pairs (module docstring).
+    then gains the chained models of its unverified view pairs (module docstring). With
+    ``neighbours`` = k > 0, a kept pair (of those ``judged``; None: all) that shares fewer than
+    ``min_shared`` of its k nearest kept pairs scoring at least ``threshold`` in both views is
+    dropped before the tracks are merged (:mod:`.neighbourhood`).
 
-    Shapes: rows, cols, scores (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
+    Shapes: rows, cols, scores, judged (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
     """
     rows, cols, scores = np.asarray(rows), np.asarray(cols), np.asarray(scores)
     if rotation_cycles:
@@ -319,6 +324,10 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
             geometry = chained
             keep = geometry.keep(rows, cols, scores)
     merged = keep & (scores >= threshold)
+    if neighbours:
+        keep &= followed_pairs(geometry.keypoints, geometry.view_index, rows, cols,
+                               keep if judged is None else keep & judged, merged, neighbours, min_shared)
+        merged &= keep
     check = TrackCheck(geometry, rows[merged], cols[merged])
     track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[keep], cols[keep], scores[keep],
                           threshold, compatible=check)

@@ -20,10 +20,11 @@ import numpy as np
 import torch
 
 from ..descriptors import NORMALIZATIONS, describe_descriptor_kind, descriptor_kind
-from ..edges.ambiguity import ambiguous_pairs, check_ratio
+from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
 from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
+from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
 from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
@@ -103,6 +104,14 @@ class GCNSolverConfig(SolverConfig):
             lines towards them (castle-P19: lines ~4 degrees off, a third of a view pair's pairs
             wrong). 0: off (every model at ``epipolar_fit_px``). Measured in
             benchmarks/results/geometric_eval.md.
+        neighbours: with ``verify``, a kept pair whose descriptors are near-copies (cosine at
+            least :data:`gcn_match_ros.edges.ambiguity.MIN_JUDGED_COSINE`) must share at least
+            ``min_shared_neighbours`` of its k = ``neighbours`` nearest confident pairs (scored at
+            least ``threshold``) of its view pair in both views
+            (:mod:`gcn_match_ros.edges.neighbourhood`): a match shifted to a repetition of its
+            point keeps the epipolar geometry but not its neighbours. 0: off. Measured in
+            benchmarks/results/geometric_eval.md.
+        min_shared_neighbours: see ``neighbours``.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -123,6 +132,8 @@ class GCNSolverConfig(SolverConfig):
     epipolar_ratio: float = 0.9
     epipolar_fit_px: float = EPIPOLAR_PX
     epipolar_fine_px: float = FINE_PX
+    neighbours: int = NEIGHBOURS
+    min_shared_neighbours: int = MIN_SHARED
     parallel: bool = True
 
     def __post_init__(self) -> None:
@@ -138,6 +149,7 @@ class GCNSolverConfig(SolverConfig):
         if not 0.0 <= self.unverified_threshold <= 1.0:
             raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
         check_ratio(self.epipolar_ratio)
+        check_neighbourhood(self.neighbours, self.min_shared_neighbours)
         if not self.epipolar_fit_px > 0.0:
             raise ValueError(f"epipolar_fit_px must be > 0, got {self.epipolar_fit_px}")
         if not self.epipolar_fine_px >= 0.0:
@@ -298,14 +310,18 @@ class GCNSolver(Solver):
                     clear = ~ambiguous_pairs(geometry, similarity, edges.normalization,
                                              soft.rows, soft.cols, self.config.epipolar_ratio)
                 soft = SoftMatches(soft.rows[clear], soft.cols[clear], soft.scores[clear])
-            return self._verified(soft, geometry)
+            return self._verified(soft, geometry, similarity, edges.normalization)
         return soft, None
 
-    def _verified(self, soft: SoftMatches, geometry: WindowGeometry):
+    def _verified(self, soft: SoftMatches, geometry: WindowGeometry, similarity: DescriptorSimilarity,
+                  normalization: str):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
         with stage("rounding"):
+            judged = near_copies(geometry, similarity, normalization, soft.rows, soft.cols) \
+                if self.config.neighbours else None
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
-                                          self.chained_models, self.config.rotation_cycles)
+                                          self.chained_models, self.config.rotation_cycles,
+                                          self.config.neighbours, self.config.min_shared_neighbours, judged)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 

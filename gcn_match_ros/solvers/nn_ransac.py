@@ -18,9 +18,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
-from ..edges.ambiguity import ambiguous_pairs, check_ratio
+from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
 from ..edges.candidates import EDGE_FEATURES, EdgeConfig, candidate_edges
 from ..edges.consistency import WindowGeometry, verified_tracks
+from ..edges.neighbourhood import MIN_SHARED, check_neighbourhood
 from ..edges.rig_memory import RigMemory
 from ..edges.verify import RANSAC_PX
 from ..graph import CorrespondenceGraph
@@ -41,7 +42,9 @@ class NNRansacConfig(SolverConfig):
     intrinsics, models closing none of the window's rotation cycles are not trusted
     (:mod:`gcn_match_ros.edges.rotation_cycles`; off by default, as for gcn); epipolar_ratio: with
     ``guided``, strong pairs with a near-copy along their epipolar line are dropped, as gcn does
-    (:mod:`gcn_match_ros.edges.ambiguity`; 0: off). The ``graph`` setting is not used (no graph is built)."""
+    (:mod:`gcn_match_ros.edges.ambiguity`; 0: off); neighbours, min_shared_neighbours: with ``guided``,
+    near-copy pairs that keep too few of their neighbours are dropped, as gcn does
+    (:mod:`gcn_match_ros.edges.neighbourhood`; 0: off). The ``graph`` setting is not used (no graph is built)."""
 
     threshold: float = 0.0
     px: float = 3.0
@@ -49,10 +52,13 @@ class NNRansacConfig(SolverConfig):
     chained_models: bool = False
     rotation_cycles: bool = False
     epipolar_ratio: float = 0.0
+    neighbours: int = 0
+    min_shared_neighbours: int = MIN_SHARED
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_ratio(self.epipolar_ratio)
+        check_neighbourhood(self.neighbours, self.min_shared_neighbours)
 
 
 @register
@@ -78,8 +84,11 @@ class NNRansacSolver(Solver):
                 clear = ~ambiguous_pairs(geometry, similarity, edges.normalization, rows, cols,
                                          self.config.epipolar_ratio)
                 rows, cols, scores = rows[clear], cols[clear], scores[clear]
+            judged = near_copies(geometry, similarity, edges.normalization, rows, cols) \
+                if self.config.neighbours else None
             keep, track = verified_tracks(geometry, rows, cols, scores, self.threshold, self.config.chained_models,
-                                          self.config.rotation_cycles)
+                                          self.config.rotation_cycles, self.config.neighbours,
+                                          self.config.min_shared_neighbours, judged)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
                                                  min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2,
