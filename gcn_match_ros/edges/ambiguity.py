@@ -31,6 +31,7 @@ import numpy as np
 
 from ..descriptors import cosine_distance
 from ..similarity import DescriptorSimilarity
+from ..view_pairs import by_view_pair
 from .consistency import WindowGeometry
 
 __all__ = ["BAND_PX", "MIN_JUDGED_COSINE", "ambiguous_pairs", "band_runner_up", "check_ratio", "near_copies"]
@@ -133,11 +134,10 @@ def ambiguous_pairs(geometry: WindowGeometry, similarity: DescriptorSimilarity, 
     offsets = geometry.problem.view_offsets
     view_a, view_b = geometry.view_index[rows], geometry.view_index[cols]
     xy = geometry.keypoints
+    groups = by_view_pair(view_a, view_b)
     for (a, b), model in geometry.models.items():
-        if model.F is None or model.planar:
-            continue
-        sel = np.flatnonzero((view_a == a) & (view_b == b))
-        if not sel.size:
+        sel = groups.get((a, b))
+        if model.F is None or model.planar or sel is None:
             continue
         ia, ib = rows[sel] - offsets[a], cols[sel] - offsets[b]
         sim = similarity.block(a, b, normalization).numpy()
@@ -163,10 +163,8 @@ def near_copies(geometry: WindowGeometry, similarity: DescriptorSimilarity, norm
     out = np.zeros(rows.shape[0], bool)
     view = geometry.view_index
     lo, hi = np.where(view[rows] < view[cols], rows, cols), np.where(view[rows] < view[cols], cols, rows)
-    va, vb = view[lo], view[hi]
     offsets = geometry.problem.view_offsets
-    for a, b in sorted(set(zip(va.tolist(), vb.tolist()))):
-        sel = np.flatnonzero((va == a) & (vb == b))
+    for (a, b), sel in by_view_pair(view[lo], view[hi]).items():
         sim = similarity.block(a, b, normalization).numpy()
         out[sel] = sim[lo[sel] - offsets[a], hi[sel] - offsets[b]] >= MIN_JUDGED_COSINE
     return out

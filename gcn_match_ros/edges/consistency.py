@@ -41,7 +41,7 @@ are wrong and random, and no model explains enough of them.
 """
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numba
 import numpy as np
@@ -49,6 +49,7 @@ import numpy as np
 from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
+from ..view_pairs import by_view_pair
 from .candidates import EdgeConfig
 from .neighbourhood import MIN_SHARED, followed_pairs
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
@@ -198,9 +199,10 @@ class WindowGeometry:
         """
         rows, cols, va, vb = self._in_view_order(rows, cols)
         out = self.small[va] | self.small[vb]
+        groups = by_view_pair(va, vb)
         for (a, b), model in self.models.items():
-            m = (va == a) & (vb == b)
-            if m.any():
+            m = groups.get((a, b))
+            if m is not None:
                 out[m] = model.agrees(self.keypoints[rows[m]], self.keypoints[cols[m]], slack)
         return out
 
@@ -302,17 +304,18 @@ def _track_agrees(data, members, n_a, n_b):
 def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
                     threshold: float, chained_models: bool = False, rotation_cycles: bool = False,
                     neighbours: int = 0, min_shared: int = MIN_SHARED,
-                    judged: Optional[np.ndarray] = None) -> Tuple[np.ndarray, np.ndarray]:
+                    judge: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
+                    ) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
     (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
     then gains the chained models of its unverified view pairs (module docstring). With
-    ``neighbours`` = k > 0, a kept pair (of those ``judged``; None: all) that shares fewer than
-    ``min_shared`` of its k nearest kept pairs scoring at least ``threshold`` in both views is
-    dropped before the tracks are merged (:mod:`.neighbourhood`).
+    ``neighbours`` = k > 0, a kept pair that ``judge`` (rows, cols) -> bool picks (None: every
+    one) and that shares fewer than ``min_shared`` of its k nearest kept pairs scoring at least
+    ``threshold`` in both views is dropped before the tracks are merged (:mod:`.neighbourhood`).
 
-    Shapes: rows, cols, scores, judged (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
+    Shapes: rows, cols, scores (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
     """
     rows, cols, scores = np.asarray(rows), np.asarray(cols), np.asarray(scores)
     if rotation_cycles:
@@ -325,8 +328,11 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
             keep = geometry.keep(rows, cols, scores)
     merged = keep & (scores >= threshold)
     if neighbours:
-        keep &= followed_pairs(geometry.keypoints, geometry.view_index, rows, cols,
-                               keep if judged is None else keep & judged, merged, neighbours, min_shared)
+        judged = keep.copy()
+        if judge is not None:
+            judged[keep] = judge(rows[keep], cols[keep])
+        keep &= followed_pairs(geometry.keypoints, geometry.view_index, rows, cols, judged, merged, neighbours,
+                               min_shared)
         merged &= keep
     check = TrackCheck(geometry, rows[merged], cols[merged])
     track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[keep], cols[keep], scores[keep],

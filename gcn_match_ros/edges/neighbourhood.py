@@ -36,6 +36,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..view_pairs import by_view_pair
+
 __all__ = ["NEIGHBOURS", "MIN_SHARED", "shared_neighbours", "followed_pairs", "check_neighbourhood"]
 
 #: neighbours compared per view (k)
@@ -103,9 +105,11 @@ def followed_pairs(keypoints: np.ndarray, view_index: np.ndarray, rows: np.ndarr
         return out
     va, vb = view_index[rows], view_index[cols]
     lo, hi = np.where(va < vb, rows, cols), np.where(va < vb, cols, rows)
-    view_pair = np.minimum(va, vb) * (int(view_index.max()) + 1) + np.maximum(va, vb)
-    for key in np.unique(view_pair[judged]):
-        at = np.flatnonzero((view_pair == key) & (judged | ref))
+    counted = np.flatnonzero(judged | ref)
+    for at in by_view_pair(np.minimum(va, vb)[counted], np.maximum(va, vb)[counted]).values():
+        at = counted[at]
+        if not judged[at].any():
+            continue
         shared = shared_neighbours(keypoints[lo[at]].astype(np.float64), keypoints[hi[at]].astype(np.float64),
                                    ref[at], k)
         out[at] = ~judged[at] | (shared >= min_shared)

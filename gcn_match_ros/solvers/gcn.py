@@ -317,11 +317,10 @@ class GCNSolver(Solver):
                   normalization: str):
         """The pairs ``geometry`` keeps, and tracks whose members all agree with it."""
         with stage("rounding"):
-            judged = near_copies(geometry, similarity, normalization, soft.rows, soft.cols) \
-                if self.config.neighbours else None
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
                                           self.chained_models, self.config.rotation_cycles,
-                                          self.config.neighbours, self.config.min_shared_neighbours, judged)
+                                          self.config.neighbours, self.config.min_shared_neighbours,
+                                          functools.partial(near_copies, geometry, similarity, normalization))
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 

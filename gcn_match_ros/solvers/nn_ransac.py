@@ -16,6 +16,7 @@ when every two members agree).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional
 
 from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
@@ -84,11 +85,10 @@ class NNRansacSolver(Solver):
                 clear = ~ambiguous_pairs(geometry, similarity, edges.normalization, rows, cols,
                                          self.config.epipolar_ratio)
                 rows, cols, scores = rows[clear], cols[clear], scores[clear]
-            judged = near_copies(geometry, similarity, edges.normalization, rows, cols) \
-                if self.config.neighbours else None
             keep, track = verified_tracks(geometry, rows, cols, scores, self.threshold, self.config.chained_models,
                                           self.config.rotation_cycles, self.config.neighbours,
-                                          self.config.min_shared_neighbours, judged)
+                                          self.config.min_shared_neighbours,
+                                          functools.partial(near_copies, geometry, similarity, edges.normalization))
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
                                                  min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2,
