@@ -79,3 +79,31 @@ def test_edge_probabilities_do_not_depend_on_the_callers_torch_threads():
     finally:
         torch.set_num_threads(before)
     np.testing.assert_array_equal(got[1], got[2])
+
+
+def test_edge_probabilities_split_over_two_threads_equal_one_pass():
+    """From SPLIT_EDGES edges on, the second half runs on the second thread (or back on the
+    caller's when that thread is busy); halves meet at a chunk boundary, so the bits are those of
+    one pass, whichever thread ran which half."""
+    import threading
+
+    from gcn_match_ros import solvers, threads
+    from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
+    from gcn_match_ros.edges.head import SPLIT_EDGES
+
+    solver = solvers.create("gcn")
+    problem = random_scene_problem(rome16k(4, n_points=400), rng=2)
+    solver.prepare(problem)
+    edges = candidate_edges(problem, solver.edge_config)
+    assert edges.rows.shape[0] > SPLIT_EDGES + 1000  # split, and not at the end
+    with torch.inference_mode():
+        E, _ = embed_problem(solver.model, problem, solver.graph_config, solver.meta["feature_config"])
+    emb = torch.from_numpy(E)
+    one_pass = edge_probabilities(solver.model, emb, edges, parallel=False)
+    np.testing.assert_array_equal(edge_probabilities(solver.model, emb, edges), one_pass)
+    # the second thread busy: the second half is taken back and run on the caller's thread
+    release = threading.Event()
+    with threads.alongside(release.wait, 10.0):
+        busy = edge_probabilities(solver.model, emb, edges)
+        release.set()
+    np.testing.assert_array_equal(busy, one_pass)

@@ -12,10 +12,15 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..threads import one_torch_thread
+from ..learn.model import EDGE_CHUNK
+from ..threads import alongside, one_torch_thread
 from .candidates import EdgeConfig, EdgeSet
 
-__all__ = ["has_edge_head", "edge_config_of", "edge_probabilities"]
+__all__ = ["has_edge_head", "edge_config_of", "edge_probabilities", "SPLIT_EDGES"]
+
+#: candidate edges from which the head's work is split over both threads: below two chunks
+#: there is nothing to split at a chunk boundary
+SPLIT_EDGES = 2 * EDGE_CHUNK
 
 
 def has_edge_head(model: torch.nn.Module) -> bool:
@@ -28,16 +33,34 @@ def edge_config_of(model: torch.nn.Module) -> EdgeConfig:
     return EdgeConfig(k=int(model.config.edge_k))
 
 
-def edge_probabilities(model: torch.nn.Module, embeddings: torch.Tensor, edges: EdgeSet) -> np.ndarray:
-    """sigmoid of the head's logit for every candidate edge (no gradients: inference), on one
-    torch thread, so that the bits do not depend on how many threads the caller has at the moment
-    (:func:`gcn_match_ros.threads.one_torch_thread`); on this project's 2-core machine the head
-    is also faster so (4 x 500 window: 15.5 against 23.5 ms on two threads; 10 x 1000: 104-130
-    against 260-346 ms).
+def edge_probabilities(model: torch.nn.Module, embeddings: torch.Tensor, edges: EdgeSet,
+                       parallel: bool = True) -> np.ndarray:
+    """sigmoid of the head's logit for every candidate edge (no gradients: inference).
+
+    Each part runs on one torch thread, so that the bits do not depend on how many threads the
+    caller has at the moment (:func:`gcn_match_ros.threads.one_torch_thread`); on this project's
+    2-core machine the head is also faster so (4 x 500 window: 15.5 against 23.5 ms on two
+    threads; 10 x 1000: 104-130 against 260-346 ms). With ``parallel`` and at least
+    :data:`SPLIT_EDGES` edges, the second half runs on the process's second thread
+    (:func:`gcn_match_ros.threads.alongside`), or back on the caller's when that thread is still
+    busy once the first half is done. The halves meet at a multiple of the head's own chunk
+    (:data:`gcn_match_ros.learn.model.EDGE_CHUNK`): the same chunks, so the same bits, as one pass.
 
     Shapes: embeddings (N, d) on the model's device, edges with M candidates -> (M,) float32.
     """
-    with one_torch_thread(), torch.no_grad():
-        logits = model.score_edges(embeddings, torch.from_numpy(edges.rows), torch.from_numpy(edges.cols),
-                                   torch.from_numpy(edges.features))
-    return torch.sigmoid(logits).cpu().numpy()
+    rows, cols, features = (torch.from_numpy(a) for a in (edges.rows, edges.cols, edges.features))
+    m = rows.shape[0]
+
+    def logits(lo: int, hi: int) -> torch.Tensor:
+        with one_torch_thread(), torch.no_grad():
+            return model.score_edges(embeddings, rows[lo:hi], cols[lo:hi], features[lo:hi])
+
+    if not parallel or m < SPLIT_EDGES:
+        out = logits(0, m)
+    else:
+        half = max(1, round(m / (2 * EDGE_CHUNK))) * EDGE_CHUNK
+        with alongside(logits, half, m) as second:
+            first = logits(0, half)
+            second.withdraw()  # not begun: the second thread is busy, so it runs here
+            out = torch.cat([first, second.result()])
+    return torch.sigmoid(out).cpu().numpy()

@@ -299,7 +299,8 @@ class GCNSolver(Solver):
                 if es.rows.shape[0] == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
                 with stage("edge_head"):
-                    soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es))
+                    soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es,
+                                                                            parallel=self.config.parallel))
         if self.config.descriptor_fallback and edges.geometry:
             with stage("candidates"):
                 soft = _with_descriptor_matches(problem, soft, similarity)
