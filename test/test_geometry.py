@@ -209,3 +209,38 @@ def test_skew_numpy_and_torch_agree_and_are_antisymmetric():
     np.testing.assert_array_equal(St.numpy(), S)
     with pytest.raises(ValueError, match=r"skew: expected shape \(\*, 3\), got \(2, 4\)"):
         skew(np.zeros((2, 4)))
+
+
+def _sightings(rng, b=50, m=4):
+    """Points 2-20 m in front of m cameras spread over 2 m, each turned a little."""
+    K = np.tile(np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), (b, m, 1, 1))
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(rng.normal(0, 0.05, (b * m, 3))).as_matrix().reshape(b, m, 3, 3)
+    centers = rng.uniform(-1, 1, (b, m, 3))
+    t = -np.einsum("bmij,bmj->bmi", R, centers)
+    X = np.c_[rng.uniform(-2, 2, (b, 2)), rng.uniform(2, 20, b)]
+    cam = np.einsum("bmij,bj->bmi", R, X) + t
+    px = np.einsum("bmij,bmj->bmi", K, cam)
+    return K, R, t, X, px[..., :2] / px[..., 2:]
+
+
+def _squared_errors(K, R, t, X, xy):
+    p = np.einsum("bmij,bmj->bmi", K, np.einsum("bmij,bj->bmi", R, X) + t)
+    return ((p[..., :2] / p[..., 2:] - xy) ** 2).sum(axis=(1, 2))
+
+
+def test_refined_points_keep_exact_sightings_and_lower_noisy_ones_errors():
+    rng = np.random.default_rng(3)
+    K, R, t, X, xy = _sightings(rng)
+    exact, err, in_front = geometry.triangulate_checked(K, R, t, xy, refine=3)
+    np.testing.assert_allclose(exact, X, atol=1e-6)
+    assert in_front.all() and err.max() < 1e-6
+    noisy = xy + rng.normal(0, 1.5, xy.shape)
+    linear, _, _ = geometry.triangulate_checked(K, R, t, noisy)
+    refined, _, _ = geometry.triangulate_checked(K, R, t, noisy, refine=3)
+    before, after = _squared_errors(K, R, t, linear, noisy), _squared_errors(K, R, t, refined, noisy)
+    assert (after <= before + 1e-9).all() and after.sum() < before.sum()
+    # a start far off converges to the same point
+    again = geometry.refine_points(K, R, t, noisy, refined + rng.normal(0, 0.05, refined.shape), steps=10)
+    np.testing.assert_allclose(again, refined, atol=1e-4)
