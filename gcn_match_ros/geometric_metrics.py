@@ -33,6 +33,7 @@ import numpy as np
 from .geometry import epipolar_distances, fundamental_from_poses, project, triangulate_checked, unproject
 from .problem import Problem, Result
 from .rounding import tracks_to_pairs
+from .view_pairs import by_view_pair
 
 __all__ = ["GeometricTolerance", "GeometricScore", "pair_epipolar_px", "consistent_tracks", "pairs_consistent",
            "score_geometric", "chance_pass_rate", "view_overlap"]
@@ -67,8 +68,7 @@ def pair_epipolar_px(problem: Problem, rows: np.ndarray, cols: np.ndarray) -> np
     va, vb = view[rows], view[cols]
     kp = problem.keypoints.astype(np.float64)
     K, R, t = problem.K, problem.R, problem.t
-    for a, b in set(zip(va.tolist(), vb.tolist())):
-        m = (va == a) & (vb == b)
+    for (a, b), m in by_view_pair(va, vb).items():
         F = fundamental_from_poses(K[a], R[a], t[a], K[b], R[b], t[b])
         out[m] = epipolar_distances(F, kp[rows[m]], kp[cols[m]])
     return out

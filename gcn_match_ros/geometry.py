@@ -20,7 +20,8 @@ from torch import Tensor
 
 __all__ = ["homogeneous", "skew", "camera_centers", "fundamental_from_poses", "essential_from_poses",
            "epipolar_residuals", "sampson_distance", "epipolar_distances", "epipolar_distance_matrix", "transfer", "project",
-           "unproject", "triangulate_pair", "triangulate_views", "triangulate_checked", "refine_points", "matrix_to_quat", "quat_to_matrix",
+           "unproject", "unproject_sightings", "triangulate_pair", "triangulate_views", "triangulate_checked",
+           "refine_points", "matrix_to_quat", "quat_to_matrix",
            "rt_to_pose", "pose_to_rt"]
 
 
@@ -239,6 +240,15 @@ def triangulate_views(P: np.ndarray, u: np.ndarray) -> np.ndarray:
         return X[:, :3] / X[:, 3:]
 
 
+def unproject_sightings(K: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """:func:`unproject` of sightings that each have their own intrinsics, a batch at a time.
+
+    Shapes: K (B, m, 3, 3), xy (B, m, 2) -> (B, m, 3) float64, last coordinate 1.
+    """
+    u = np.einsum("bmij,bmj->bmi", np.linalg.inv(K), np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1))
+    return u / u[..., 2:]
+
+
 def triangulate_checked(K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndarray, refine: int = 0
                         ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangulate points from all their sightings at once (:func:`triangulate_views`) and
@@ -255,8 +265,7 @@ def triangulate_checked(K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndar
         X (B, 3) world points; err (B,) the largest reprojection error over the sightings
         (inf where not finite); in_front (B,) X is finite and in front of every camera.
     """
-    u = np.einsum("bmij,bmj->bmi", np.linalg.inv(K), np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1))
-    u = u[..., :2] / u[..., 2:]
+    u = unproject_sightings(K, xy)[..., :2]
     X = triangulate_views(np.concatenate([R, t[..., None]], axis=-1), u)
     if refine:
         X = refine_points(K, R, t, xy, X, refine)

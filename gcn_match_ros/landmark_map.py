@@ -19,7 +19,7 @@ from typing import Dict, List, Sequence, Tuple
 
 import numpy as np
 
-from .geometry import triangulate_checked
+from .geometry import triangulate_checked, unproject_sightings
 from .problem import Problem
 
 __all__ = ["LandmarkMap", "MapConfig", "held_out_sighting_errors", "reprojection_summary"]
@@ -134,8 +134,7 @@ class LandmarkMap:
             K, R, t, xy = (np.array([[getattr(s, f) for s in self._sightings[lm]] for lm in group])
                            for f in ("K", "R", "t", "xy"))
             centers = -np.einsum("bmji,bmj->bmi", R, t)                         # (B, m, 3)
-            rays = np.einsum("bmji,bmj->bmi", R, np.einsum("bmij,bmj->bmi", np.linalg.inv(K),
-                                                           np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], -1)))
+            rays = np.einsum("bmji,bmj->bmi", R, unproject_sightings(K, xy))
             rays /= np.linalg.norm(rays, axis=2, keepdims=True)
             widest = np.clip(np.einsum("bmi,bni->bmn", rays, rays), -1.0, 1.0).min(axis=(1, 2))
             moved = np.ptp(centers, axis=1).max(axis=1) > 0

@@ -159,12 +159,10 @@ def near_copies(geometry: WindowGeometry, similarity: DescriptorSimilarity, norm
 
     Shapes: rows, cols (M,) global keypoint indices of different views -> (M,) bool.
     """
-    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    out = np.zeros(rows.shape[0], bool)
-    view = geometry.view_index
-    lo, hi = np.where(view[rows] < view[cols], rows, cols), np.where(view[rows] < view[cols], cols, rows)
+    lo, hi, va, vb = geometry.in_view_order(rows, cols)
+    out = np.zeros(lo.shape[0], bool)
     offsets = geometry.problem.view_offsets
-    for (a, b), sel in by_view_pair(view[lo], view[hi]).items():
+    for (a, b), sel in by_view_pair(va, vb).items():
         sim = similarity.block(a, b, normalization).numpy()
         out[sel] = sim[lo[sel] - offsets[a], hi[sel] - offsets[b]] >= MIN_JUDGED_COSINE
     return out

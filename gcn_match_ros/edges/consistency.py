@@ -115,12 +115,12 @@ class WindowGeometry:
             return self
         chained = greedy_tracks(self.view_index.shape[0], self.view_index, rows, cols, scores, threshold)
         seed_rows, seed_cols = tracks_to_pairs(chained)
-        va, vb = self.view_index[seed_rows], self.view_index[seed_cols]
+        groups = by_view_pair(self.view_index[seed_rows], self.view_index[seed_cols])
         K = self.problem.K
         models = dict(self.models)
         for a, b in todo:
-            m = (va == a) & (vb == b)
-            if m.sum() < self.edges.min_inliers:
+            m = groups.get((a, b))
+            if m is None or m.size < self.edges.min_inliers:
                 continue
             model = self.edges.trusted(self.edges.fit(self.keypoints[seed_rows[m]], self.keypoints[seed_cols[m]],
                                                       None if K is None else K[a], None if K is None else K[b]))
@@ -142,14 +142,16 @@ class WindowGeometry:
         K = self.problem.K
         if K is None:
             return self
-        rows, cols, va, vb = self._in_view_order(rows, cols)
+        rows, cols, va, vb = self.in_view_order(rows, cols)
         agreeing = self.agree(rows, cols)
+        groups = by_view_pair(va, vb)
         rotations = {}
         for (a, b), model in self.models.items():
-            if model.planar or not model.essential:
+            m = groups.get((a, b))
+            if model.planar or not model.essential or m is None:
                 continue
-            m = agreeing & (va == a) & (vb == b)
-            if m.sum() < MIN_ROTATION_PAIRS:
+            m = m[agreeing[m]]
+            if m.size < MIN_ROTATION_PAIRS:
                 continue
             R = relative_rotation(K[b].T @ model.F @ K[a], unproject(K[a], self.keypoints[rows[m]])[:, :2],
                                   unproject(K[b], self.keypoints[cols[m]])[:, :2])
@@ -179,7 +181,7 @@ class WindowGeometry:
             return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, model.px
         return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
 
-    def _in_view_order(self, rows: np.ndarray, cols: np.ndarray) -> Tuple[np.ndarray, ...]:
+    def in_view_order(self, rows: np.ndarray, cols: np.ndarray) -> Tuple[np.ndarray, ...]:
         """The pairs with each one's keypoint of the lower view first, and their views.
 
         Shapes: rows, cols (M,) -> rows, cols, view of rows, view of cols (M,) int64.
@@ -197,7 +199,7 @@ class WindowGeometry:
 
         Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
         """
-        rows, cols, va, vb = self._in_view_order(rows, cols)
+        rows, cols, va, vb = self.in_view_order(rows, cols)
         out = self.small[va] | self.small[vb]
         groups = by_view_pair(va, vb)
         for (a, b), model in self.models.items():

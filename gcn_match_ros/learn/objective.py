@@ -29,6 +29,7 @@ from ..geometry import fundamental_from_poses, sampson_distance
 from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..node_features import FeatureConfig, calibrated_points, node_features
 from ..problem import Problem
+from ..view_pairs import by_view_pair
 from .config import TrainConfig
 from .losses import edge_loss, epipolar_loss, reconstruction_loss
 from .model import collate, graph_tensors
@@ -202,14 +203,12 @@ def edge_training_inputs(problem: Problem, config: EdgeConfig) -> Tuple[EdgeSet,
     res = np.full(es.rows.shape[0], np.inf)
     view = problem.view_index
     va, vb = view[es.rows], view[es.cols]
-    for a in range(problem.n_views):
-        for b in range(a + 1, problem.n_views):
-            m = (va == a) & (vb == b)
-            if m.any():
-                F = fundamental_from_poses(problem.K[a], problem.R[a], problem.t[a],
-                                           problem.K[b], problem.R[b], problem.t[b])
-                res[m] = sampson_distance(F, problem.keypoints[es.rows[m]].astype(np.float64),
-                                          problem.keypoints[es.cols[m]].astype(np.float64))
+    for (a, b), m in by_view_pair(va, vb).items():
+        if a < b:
+            F = fundamental_from_poses(problem.K[a], problem.R[a], problem.t[a],
+                                       problem.K[b], problem.R[b], problem.t[b])
+            res[m] = sampson_distance(F, problem.keypoints[es.rows[m]].astype(np.float64),
+                                      problem.keypoints[es.cols[m]].astype(np.float64))
     if problem.name:
         _EDGE_CACHE[key] = (es, res)
         while len(_EDGE_CACHE) > _EDGE_CACHE_SIZE:
