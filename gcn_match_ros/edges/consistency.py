@@ -51,6 +51,7 @@ from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
 from ..view_pairs import by_view_pair
 from .candidates import EdgeConfig
+from .duplicates import better_placed_members
 from .neighbourhood import MIN_SHARED, followed_pairs
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
 from .verify import MIN_SEEDS, PairModel, sampson_error_px, transfer_error_px
@@ -306,10 +307,12 @@ def _track_agrees(data, members, n_a, n_b):
 def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray,
                     threshold: float, chained_models: bool = False, rotation_cycles: bool = False,
                     neighbours: int = 0, min_shared: int = MIN_SHARED,
-                    judge: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None
-                    ) -> Tuple[np.ndarray, np.ndarray]:
+                    judge: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None,
+                    prefer_localised: bool = False) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). With
+    ``prefer_localised``, a track whose view pairs are all verified by homographies takes, of
+    near-duplicate keypoints, the ones they place best (:mod:`.duplicates`). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
     (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
     then gains the chained models of its unverified view pairs (module docstring). With
@@ -339,4 +342,6 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     check = TrackCheck(geometry, rows[merged], cols[merged])
     track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[keep], cols[keep], scores[keep],
                           threshold, compatible=check)
+    if prefer_localised:
+        track = better_placed_members(geometry, track)
     return keep, track

@@ -112,6 +112,11 @@ class GCNSolverConfig(SolverConfig):
             point keeps the epipolar geometry but not its neighbours. 0: off. Measured in
             benchmarks/results/geometric_eval.md.
         min_shared_neighbours: see ``neighbours``.
+        prefer_localised: with ``verify``, a track whose view pairs are all verified by
+            homographies takes, of near-duplicate keypoints (closer than
+            :data:`gcn_match_ros.edges.duplicates.DUPLICATE_PX`: ORB's pyramid levels report
+            one corner several times), the ones they place best
+            (:mod:`gcn_match_ros.edges.duplicates`).
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -134,6 +139,7 @@ class GCNSolverConfig(SolverConfig):
     epipolar_fine_px: float = FINE_PX
     neighbours: int = NEIGHBOURS
     min_shared_neighbours: int = MIN_SHARED
+    prefer_localised: bool = True
     parallel: bool = True
 
     def __post_init__(self) -> None:
@@ -321,7 +327,8 @@ class GCNSolver(Solver):
             keep, track = verified_tracks(geometry, soft.rows, soft.cols, soft.scores, self.threshold,
                                           self.chained_models, self.config.rotation_cycles,
                                           self.config.neighbours, self.config.min_shared_neighbours,
-                                          functools.partial(near_copies, geometry, similarity, normalization))
+                                          functools.partial(near_copies, geometry, similarity, normalization),
+                                          prefer_localised=self.config.prefer_localised)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 

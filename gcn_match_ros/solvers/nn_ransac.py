@@ -45,7 +45,9 @@ class NNRansacConfig(SolverConfig):
     ``guided``, strong pairs with a near-copy along their epipolar line are dropped, as gcn does
     (:mod:`gcn_match_ros.edges.ambiguity`; 0: off); neighbours, min_shared_neighbours: with ``guided``,
     near-copy pairs that keep too few of their neighbours are dropped, as gcn does
-    (:mod:`gcn_match_ros.edges.neighbourhood`; 0: off). The ``graph`` setting is not used (no graph is built)."""
+    (:mod:`gcn_match_ros.edges.neighbourhood`; 0: off); prefer_localised: with ``guided``, tracks take the
+    near-duplicate keypoints their homographies place best, as gcn's do
+    (:mod:`gcn_match_ros.edges.duplicates`). The ``graph`` setting is not used (no graph is built)."""
 
     threshold: float = 0.0
     px: float = 3.0
@@ -55,6 +57,7 @@ class NNRansacConfig(SolverConfig):
     epipolar_ratio: float = 0.0
     neighbours: int = 0
     min_shared_neighbours: int = MIN_SHARED
+    prefer_localised: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -88,7 +91,8 @@ class NNRansacSolver(Solver):
             keep, track = verified_tracks(geometry, rows, cols, scores, self.threshold, self.config.chained_models,
                                           self.config.rotation_cycles, self.config.neighbours,
                                           self.config.min_shared_neighbours,
-                                          functools.partial(near_copies, geometry, similarity, edges.normalization))
+                                          functools.partial(near_copies, geometry, similarity, edges.normalization),
+                                          prefer_localised=self.config.prefer_localised)
             return SoftMatches(rows[keep], cols[keep], scores[keep]), track
         es = candidate_edges(problem, EdgeConfig(k=1, guided=False, normalization="l2", min_inliers=0,
                                                  min_inlier_ratio=0.0, essential=False, epipolar_px=RANSAC_PX / 2,

@@ -1,0 +1,89 @@
+"""Tests of gcn_match_ros.edges.duplicates: known answers."""
+import numpy as np
+
+from gcn_match_ros.edges.consistency import WindowGeometry, verified_tracks
+from gcn_match_ros.edges.duplicates import DUPLICATE_PX, better_placed_members
+from gcn_match_ros.edges.verify import PairModel
+from gcn_match_ros.problem import Problem
+
+SHIFT = np.array([100.0, 3.0])
+H = np.array([[1.0, 0, SHIFT[0]], [0, 1.0, SHIFT[1]], [0, 0, 1.0]])
+F = np.array([[0.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # a pure x translation: horizontal lines
+
+
+def _window(xa, xb):
+    n_a, n_b = len(xa), len(xb)
+    return Problem(view_offsets=np.array([0, n_a, n_a + n_b]), keypoints=np.concatenate([xa, xb]).astype(np.float32),
+                   descriptors=np.zeros((n_a + n_b, 8), np.float32))
+
+
+def _points():
+    """Four points of view a; view b holds their true images, and after them a near-duplicate of
+    the first image 1.5 px off and a keypoint 5 px off the second (no duplicate: too far)."""
+    xa = np.array([[10.0, 10], [60, 10], [10, 60], [60, 60]])
+    xb = np.r_[xa + SHIFT, xa[:1] + SHIFT + [1.5, 0.0], xa[1:2] + SHIFT + [5.0, 0.0]]
+    return xa, xb
+
+
+def _geometry(problem, planar=True):
+    model = (PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4, px=10.0) if planar
+             else PairModel(H=None, F=F, planar=False, seeds=4, inliers_f=4, epipolar_px=10.0))
+    return WindowGeometry(problem, {(0, 1): model})
+
+
+def test_verified_tracks_takes_the_better_placed_duplicate_only_when_asked():
+    xa, xb = _points()
+    problem = _window(xa, xb)
+    n_a = len(xa)
+    rows, cols = np.array([0, 0]), n_a + np.array([0, 4])
+    scores = np.array([0.7, 0.8])  # the duplicate scores higher: merged first without the rule
+    keep, track = verified_tracks(_geometry(problem), rows, cols, scores, 0.5)
+    assert keep.all() and track[0] == track[n_a + 4] and track[n_a] == -1
+    keep, track = verified_tracks(_geometry(problem), rows, cols, scores, 0.5, prefer_localised=True)
+    # both pairs stay published; the track takes the better-placed keypoint
+    assert keep.all() and track[0] == track[n_a] and track[n_a + 4] == -1
+
+
+def test_two_tracks_exchange_near_duplicates_the_homography_places_the_other_way_round():
+    xa, xb = _points()
+    problem = _window(xa, xb)
+    n_a = len(xa)
+    # the true image of point 0 went to point 2 (a wrong pair the huge tolerance lets agree),
+    # point 0 to its duplicate: exchanged, both tracks keep their size
+    geometry = WindowGeometry(problem, {(0, 1): PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4,
+                                                          px=100.0)})
+    rows, cols = np.array([2, 0]), n_a + np.array([0, 4])
+    _, before = verified_tracks(geometry, rows, cols, np.array([0.99, 0.8]), 0.5)
+    assert before[2] == before[n_a] and before[0] == before[n_a + 4]
+    _, track = verified_tracks(geometry, rows, cols, np.array([0.99, 0.8]), 0.5, prefer_localised=True)
+    assert track[0] == track[n_a] == before[0] and track[2] == track[n_a + 4] == before[2]
+
+
+def test_a_track_swaps_a_member_for_the_better_placed_free_duplicate():
+    """Three views of a plane, each the one before shifted by SHIFT. Point 0's track holds in view
+    1 the near-duplicate 1.5 px off (joined through view 2, say); its true image is in no track."""
+    xa, xb = _points()
+    xc = xa + 2 * SHIFT
+    n_a, n_b = len(xa), len(xb)
+    problem = Problem(view_offsets=np.array([0, n_a, n_a + n_b, n_a + n_b + n_a]),
+                      keypoints=np.concatenate([xa, xb, xc]).astype(np.float32),
+                      descriptors=np.zeros((2 * n_a + n_b, 8), np.float32))
+    H2 = H @ H
+    models = {(0, 1): PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4, px=3.0),
+              (0, 2): PairModel(H=H2, F=None, planar=True, seeds=4, inliers_h=4, px=3.0),
+              (1, 2): PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4, px=3.0)}
+    track = np.full(problem.n_keypoints, -1)
+    track[[0, n_a + 4, n_a + n_b]] = 0       # point 0: the duplicate in view 1
+    track[[1, n_a + 1, n_a + n_b + 1]] = 1   # point 1: right, and its 5 px rival is no duplicate
+    swapped = better_placed_members(WindowGeometry(problem, models), track)
+    expected = track.copy()
+    expected[n_a + 4], expected[n_a] = -1, 0
+    np.testing.assert_array_equal(swapped, expected)
+    assert DUPLICATE_PX < 5.0
+    # an epipolar model in the track: nothing ranks the duplicates, nothing changes
+    models[(1, 2)] = PairModel(H=None, F=F, planar=False, seeds=4, inliers_f=4, epipolar_px=10.0)
+    np.testing.assert_array_equal(better_placed_members(WindowGeometry(problem, models), track), track)
+    # a duplicate already in another track is not taken
+    track[[n_a, n_a + n_b + 2]] = 2
+    models[(1, 2)] = PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4, px=3.0)
+    np.testing.assert_array_equal(better_placed_members(WindowGeometry(problem, models), track), track)
