@@ -39,11 +39,12 @@ from gcn_match_ros.geometric_metrics import chance_pass_rate, pairs_consistent, 
 from gcn_match_ros.plots import plot_reliability
 
 REPO = Path(__file__).resolve().parents[1]
-METHODS = ["gcn", "gcn:prefer_localised=false", "gcn:neighbours=0", "gcn:epipolar_ratio=0", "gcn:epipolar_fine_px=0",
-           "gcn:epipolar_ratio=0.85", "gcn:epipolar_ratio=0.8", "gcn:rotation_cycles=true", "gcn:epipolar_fit_px=0.5",
-           "gcn:verify=false", "nn", "nn-ransac", "nn-ransac:guided=true",
-           "nn-ransac:guided=true,prefer_localised=false", "nn-ransac:guided=true,epipolar_ratio=0.9",
-           "nn-ransac:guided=true,rotation_cycles=true", "nn-ransac:guided=true,neighbours=8"]
+METHODS = ["gcn", "gcn:planar_threshold=0.5", "gcn:prefer_localised=false,planar_threshold=0.5",
+           "gcn:neighbours=0", "gcn:epipolar_ratio=0", "gcn:epipolar_fine_px=0", "gcn:epipolar_ratio=0.85",
+           "gcn:epipolar_ratio=0.8", "gcn:rotation_cycles=true", "gcn:epipolar_fit_px=0.5", "gcn:verify=false",
+           "nn", "nn-ransac", "nn-ransac:guided=true", "nn-ransac:guided=true,prefer_localised=false",
+           "nn-ransac:guided=true,epipolar_ratio=0.9", "nn-ransac:guided=true,rotation_cycles=true",
+           "nn-ransac:guided=true,neighbours=8"]
 SCORE_THRESHOLD = 0.1  # the matcher node's default: pairs scored above it are published
 OVERLAP_NONE = 0.05    # a view pair whose frusta share less than this sees no common point
 BINS = np.round(np.arange(0.1, 0.95, 0.1), 2)

@@ -69,14 +69,20 @@ def main(argv=None):
                     help="the descriptor normalization gcn builds this model's graph from at inference (stored "
                          "with it; default: the one already stored with the model, else the one it was trained "
                          "with; models/README.md: rootsift for the shipped models, the candidate edges' own)")
+    ap.add_argument("--planar-threshold", type=float, default=None,
+                    help="the threshold of windows whose every trusted two-view model is a homography (stored "
+                         "with the model; default: the one already stored with it, if any; models/README.md: the "
+                         "validation-F1 choices, 0.2 for default.pt and 0.3 for orb.pt)")
     ap.add_argument("--restamp", action="store_true",
-                    help="only store --threshold, --chained-models and --graph-normalization in the shipped model "
-                         "of --detector (weights unchanged; all are chosen after training: models/README.md)")
+                    help="only store --threshold, --planar-threshold, --chained-models and --graph-normalization in "
+                         "the shipped model of --detector (weights unchanged; all are chosen after training: "
+                         "models/README.md)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.restamp:
         target = SHIPPED_MODELS[DETECTOR_KINDS[args.detector]]
-        _install(target, target, args.threshold, args.chained_models == "true", args.graph_normalization)
+        _install(target, target, args.threshold, args.chained_models == "true", args.graph_normalization,
+                 args.planar_threshold)
         return
     train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
@@ -101,21 +107,22 @@ def main(argv=None):
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true",
-                 args.graph_normalization)
+                 args.graph_normalization, args.planar_threshold)
 
 
 def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool,
-             graph_normalization: Optional[str] = None) -> None:
+             graph_normalization: Optional[str] = None, planar_threshold: Optional[float] = None) -> None:
     """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``,
-    ``chained_models`` and ``graph_normalization`` (None: the one ``checkpoint`` stores, if any) to
-    ``target`` (atomically: save_checkpoint). A restamp of the threshold alone thus keeps the
-    shipped models' graph choice."""
+    ``chained_models``, ``graph_normalization`` and ``planar_threshold`` (None: the one
+    ``checkpoint`` stores, if any) to ``target`` (atomically: save_checkpoint). A restamp of the
+    threshold alone thus keeps the shipped models' other choices."""
     model, meta = load_checkpoint(checkpoint)
+    stored = meta["config"].get("solver") or {}
     solver = {"threshold": threshold, "chained_models": chained_models}
-    if graph_normalization is None:
-        graph_normalization = (meta["config"].get("solver") or {}).get("graph_normalization")
-    if graph_normalization is not None:
-        solver["graph_normalization"] = graph_normalization
+    for name, value in (("graph_normalization", graph_normalization), ("planar_threshold", planar_threshold)):
+        value = stored.get(name) if value is None else value
+        if value is not None:
+            solver[name] = value
     save_checkpoint(target, model, dict(meta["config"], solver=solver), {"step": int(meta["extra"].get("step", 0))})
     print("installed", target, "solver settings", solver)
 

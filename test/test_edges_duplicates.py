@@ -1,8 +1,8 @@
-"""Tests of gcn_match_ros.edges.duplicates: known answers."""
+"""Tests of gcn_match_ros.edges.duplicates and of verified_tracks in one-plane windows: known answers."""
 import numpy as np
 
 from gcn_match_ros.edges.consistency import WindowGeometry, verified_tracks
-from gcn_match_ros.edges.duplicates import DUPLICATE_PX, better_placed_members
+from gcn_match_ros.edges.duplicates import DUPLICATE_PX, KEY_STEP, better_placed_members, merge_order
 from gcn_match_ros.edges.verify import PairModel
 from gcn_match_ros.problem import Problem
 
@@ -87,3 +87,62 @@ def test_a_track_swaps_a_member_for_the_better_placed_free_duplicate():
     track[[n_a, n_a + n_b + 2]] = 2
     models[(1, 2)] = PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4, px=3.0)
     np.testing.assert_array_equal(better_placed_members(WindowGeometry(problem, models), track), track)
+
+
+def test_the_duplicate_the_homography_places_better_is_merged_first():
+    xa, xb = _points()
+    problem = _window(xa, xb)
+    n_a = len(xa)
+    # 0 -> its true image, 0 -> its duplicate (1.5 px off), 1 -> its true image, 1 -> 5 px off
+    rows = np.array([0, 0, 1, 1])
+    cols = n_a + np.array([0, 4, 1, 5])
+    scores = np.array([0.5, 0.8, 0.9, 0.95])
+    keys = merge_order(_geometry(problem), rows, cols, scores, np.ones(4, bool))
+    np.testing.assert_array_equal(keys, [0.8 + KEY_STEP, 0.8, 0.9, 0.95])
+    # either order of a pair's keypoints; only candidates compete
+    np.testing.assert_array_equal(merge_order(_geometry(problem), cols, rows, scores, np.ones(4, bool)), keys)
+    np.testing.assert_array_equal(merge_order(_geometry(problem), rows, cols, scores,
+                                              np.array([False, True, True, True])), scores)
+    # a larger duplicate radius makes the 5 px keypoint a near-duplicate of the true image too
+    keys = merge_order(_geometry(problem), rows, cols, scores, np.ones(4, bool), duplicate_px=6.0)
+    np.testing.assert_array_equal(keys, [0.8 + KEY_STEP, 0.8, 0.95 + KEY_STEP, 0.95])
+    # an epipolar model does not rank them
+    np.testing.assert_array_equal(merge_order(_geometry(problem, planar=False), rows, cols, scores,
+                                              np.ones(4, bool)), scores)
+
+
+def _three_views(models_planar=(True, True, True)):
+    """A plane seen three times, 16 points a view (enough for a model: verify.MIN_SEEDS)."""
+    xa = np.stack(np.meshgrid(np.arange(4), np.arange(4)), -1).reshape(-1, 2) * 40.0 + 10.0
+    problem = Problem(view_offsets=np.array([0, 16, 32, 48]),
+                      keypoints=np.concatenate([xa, xa + SHIFT, xa + 2 * SHIFT]).astype(np.float32),
+                      descriptors=np.zeros((48, 8), np.float32))
+    Hs = {(0, 1): H, (0, 2): H @ H, (1, 2): H}
+    models = {k: (PairModel(H=Hk, F=None, planar=True, seeds=4, inliers_h=4, px=3.0) if p
+                  else PairModel(H=None, F=F, planar=False, seeds=4, inliers_f=4, epipolar_px=10.0))
+              for (k, Hk), p in zip(Hs.items(), models_planar)}
+    return problem, models
+
+
+def test_one_plane_needs_every_view_pair_verified_by_a_homography():
+    problem, models = _three_views()
+    assert WindowGeometry(problem, models).one_plane
+    assert not WindowGeometry(problem, {k: m for k, m in models.items() if k != (1, 2)}).one_plane  # unverified
+    assert not WindowGeometry(problem, _three_views((True, True, False))[1]).one_plane  # an epipolar model
+    assert not WindowGeometry(problem, {}).one_plane
+
+
+def test_the_planar_threshold_applies_in_one_plane_windows_only():
+    rows = np.array([0, 1, 2, 3])
+    cols = rows + 16
+    scores = np.array([0.9, 0.4, 0.4, 0.2])
+    joined = lambda track: [bool(track[r] >= 0 and track[r] == track[c]) for r, c in zip(rows, cols)]  # noqa: E731
+    problem, models = _three_views()
+    _, track = verified_tracks(WindowGeometry(problem, models), rows, cols, scores, 0.5, planar_threshold=0.3)
+    assert joined(track) == [True, True, True, False]
+    _, track = verified_tracks(WindowGeometry(problem, models), rows, cols, scores, 0.5)
+    assert joined(track) == [True, False, False, False]
+    # view pair (1, 2) epipolar: the window is not one plane, the precision-first threshold holds
+    problem, models = _three_views((True, True, False))
+    _, track = verified_tracks(WindowGeometry(problem, models), rows, cols, scores, 0.5, planar_threshold=0.3)
+    assert joined(track) == [True, False, False, False]

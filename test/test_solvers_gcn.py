@@ -108,6 +108,22 @@ def test_threshold_follows_the_model_unless_set():
     assert fixed.threshold == 0.45
 
 
+def test_planar_threshold_follows_the_model_unless_a_threshold_is_set():
+    """The shipped models store their validation-F1 threshold for one-plane windows next to the
+    precision-first one (models/README.md); a threshold set by hand applies to every window."""
+    stored = {kind: load_checkpoint(SHIPPED_MODELS[kind])[1]["config"]["solver"]
+              for kind in ((128, False), (256, True))}
+    assert all(s["planar_threshold"] < s["threshold"] for s in stored.values())
+    solver = solvers.create("gcn")
+    assert solver.planar_threshold == stored[(128, False)]["planar_threshold"]
+    solver._use(str(SHIPPED_MODELS[(256, True)]))
+    assert solver.planar_threshold == stored[(256, True)]["planar_threshold"]
+    assert solvers.create("gcn:threshold=0.45").planar_threshold == 0.45
+    assert solvers.create("gcn:threshold=0.45,planar_threshold=0.1").planar_threshold == 0.1
+    with pytest.raises(ValueError, match="planar_threshold"):
+        solvers.create("gcn:planar_threshold=1.5")
+
+
 def test_chained_models_follow_the_model_unless_set():
     """The shipped ORB model verifies with chained models, the SIFT model without (models/README.md)."""
     solver = solvers.create("gcn")

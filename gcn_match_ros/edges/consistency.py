@@ -51,7 +51,7 @@ from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
 from ..view_pairs import by_view_pair
 from .candidates import EdgeConfig
-from .duplicates import better_placed_members
+from .duplicates import better_placed_members, merge_order
 from .neighbourhood import MIN_SHARED, followed_pairs
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
 from .verify import MIN_SEEDS, PairModel, sampson_error_px, transfer_error_px
@@ -91,11 +91,21 @@ class WindowGeometry:
         self.unverified_threshold = float(unverified_threshold)
         #: (V, V) symmetric: the view pair has a trusted model
         self.verified = np.zeros((problem.n_views, problem.n_views), bool)
-        for a, b in self.models:
+        #: (V, V) symmetric: the trusted model is a homography
+        self.planar = np.zeros((problem.n_views, problem.n_views), bool)
+        for (a, b), model in self.models.items():
             self.verified[a, b] = self.verified[b, a] = True
+            self.planar[a, b] = self.planar[b, a] = model.planar
         #: (V, V) symmetric: no trusted model although both views are large enough for one
         self.unverified = ~self.verified & ~(self.small[:, None] | self.small[None, :])
         self._offsets = problem.view_offsets
+
+    @property
+    def one_plane(self) -> bool:
+        """Every view pair large enough for a model is verified by a homography: the window sees
+        one plane, or cameras that only rotate, and every pair is checked point to point."""
+        checkable = np.triu(~(self.small[:, None] | self.small[None, :]), 1)
+        return bool(checkable.any() and self.planar[checkable].all())
 
     def unverified_pairs(self) -> List[ViewPair]:
         """View pairs (a, b), a < b, without a trusted model whose views are large enough to have one."""
@@ -308,11 +318,16 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                     threshold: float, chained_models: bool = False, rotation_cycles: bool = False,
                     neighbours: int = 0, min_shared: int = MIN_SHARED,
                     judge: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None,
-                    prefer_localised: bool = False) -> Tuple[np.ndarray, np.ndarray]:
+                    prefer_localised: bool = False, planar_threshold: Optional[float] = None
+                    ) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
-    ``threshold`` with every two members agreeing (:class:`TrackCheck`). With
-    ``prefer_localised``, a track whose view pairs are all verified by homographies takes, of
-    near-duplicate keypoints, the ones they place best (:mod:`.duplicates`). With
+    ``threshold`` with every two members agreeing (:class:`TrackCheck`). In a window that sees
+    one plane (:attr:`WindowGeometry.one_plane`) the threshold is ``planar_threshold`` when given:
+    the precision-first threshold guards against repetitions along epipolar lines, which a
+    point-to-point check does not let through. With ``prefer_localised``, tracks take of
+    near-duplicate keypoints the ones the homographies place best (:mod:`.duplicates`: ranked
+    before the merge in a one-plane window, exchanged after it in every track whose view pairs
+    are all homographies). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
     (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
     then gains the chained models of its unverified view pairs (module docstring). With
@@ -331,6 +346,9 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
         if chained is not geometry:
             geometry = chained
             keep = geometry.keep(rows, cols, scores)
+    one_plane = geometry.one_plane
+    if one_plane and planar_threshold is not None:
+        threshold = planar_threshold
     merged = keep & (scores >= threshold)
     if neighbours:
         judged = keep.copy()
@@ -340,8 +358,9 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                                min_shared)
         merged &= keep
     check = TrackCheck(geometry, rows[merged], cols[merged])
-    track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[keep], cols[keep], scores[keep],
-                          threshold, compatible=check)
+    keys = merge_order(geometry, rows, cols, scores, merged) if prefer_localised and one_plane else scores
+    track = greedy_tracks(geometry.view_index.shape[0], geometry.view_index, rows[merged], cols[merged],
+                          keys[merged], -np.inf, compatible=check)
     if prefer_localised:
         track = better_placed_members(geometry, track)
     return keep, track

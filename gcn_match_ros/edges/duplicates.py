@@ -4,41 +4,45 @@ Detectors report one corner several times: OpenCV's ORB detects on eight pyramid
 58 % of its 500 keypoints in an Oxford image have another keypoint of the same image within
 3 px (SIFT: 3 %). A track holds one keypoint per view, so which near-duplicate joins is decided
 by the merge order — scores that are nearly equal — and the point can even split into two
-tracks, x_a–y'_b and x'_a–y_b, each holding one of the duplicates of both views. Where every
-view pair of a track is verified by a homography, the homographies predict each member's
-*position* from the others, and the track can take the better-placed keypoint. After merging,
-for a member m of track T in view b and a near-duplicate d of it (closer than
-:data:`DUPLICATE_PX`), with P(x, T) the total transfer error of x against T's members in the
-other views::
+tracks, x_a–y'_b and x'_a–y_b, each holding one of the duplicates of both views. Where view
+pairs are verified by homographies, the homographies predict a keypoint's *position*, and the
+track can take the better-placed keypoint (e: a homography's symmetric transfer error):
 
-    d in no track:      replace m by d              if  P(d, T) < P(m, T)
-    d in track T':      exchange m and d            if  P(d, T) + P(m, T') < P(m, T) + P(d, T')
+1. Before the merge, in a window that sees one plane (every view pair a homography,
+   :attr:`.consistency.WindowGeometry.one_plane`): of a keypoint's candidate partners in one
+   view that are near-duplicates (closer than :data:`DUPLICATE_PX`), the better-placed one is
+   merged first (:func:`merge_order`); the other keeps its place behind it and still joins
+   where the better one cannot.
+2. After the merge, in every track whose view pairs are all homographies: a member m of track T
+   in view b and a near-duplicate d of it, with P(x, T) the total transfer error of x against
+   T's members in the other views (:func:`better_placed_members`)::
 
-each x within every homography's tolerance. Track sizes never change, so nothing the merge
-joined is lost. An epipolar model predicts only a line, along which near-duplicates cannot be
-ranked: tracks with a view pair verified by one are left as merged. (Ranking the pairs before
-the merge instead — the better-placed partner merged first — was measured and not adopted: on the
-ORB development windows of benchmarks/geometric_eval.py, 3-D scenes whose homographies only
-approximate a plane, geometric precision 0.929 -> 0.922 with fewer consistent pairs, while the
-Oxford ORB windows below gained more: F1 0.842.)
+       d in no track:      replace m by d              if  P(d, T) < P(m, T)
+       d in track T':      exchange m and d            if  P(d, T) + P(m, T') < P(m, T) + P(d, T')
 
-Measured, ``gcn:prefer_localised=false`` -> the default: the 16 Oxford ORB windows of
-benchmarks/real_eval.py (exact labels, which mark the keypoint nearest the true position and
-leave its near-duplicates unlabelled) F1 0.826 -> 0.833 (precision 0.944 -> 0.948), the 16 other
-Oxford ORB windows (images 2-6) 0.619 -> 0.631, Oxford SIFT 0.967 unchanged; against the true
-cameras (benchmarks/geometric_eval.py) ORB development windows 0.929 -> 0.931 geometric
-precision, castle-P19 0.924 -> 0.928, SIFT development windows identical, castle-P19 two more
-consistent pairs. ``nn-ransac:guided=true`` shares the rule: Oxford ORB 0.782 -> 0.804.
+   each x within every homography's tolerance. Track sizes never change.
+
+An epipolar model predicts only a line, along which near-duplicates cannot be ranked, and the
+homography of a view pair in a 3-D scene only approximates a plane: ranking before the merge in
+every window, not only one-plane ones, cost the ORB development windows of
+benchmarks/geometric_eval.py geometric precision (0.929 -> 0.922, fewer consistent pairs).
+
+Measured (README, "Near-duplicate keypoints"): the exchange after the merge alone, held-out
+Oxford ORB F1 0.826 -> 0.833, ORB development windows 0.929 -> 0.931 geometric precision,
+castle-P19 0.924 -> 0.928; with the ranking and the planar threshold in one-plane windows
+(:func:`.consistency.verified_tracks`) Oxford ORB 0.833 -> 0.859, the 3-D scenes' tables
+unchanged but for a few pairs.
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..view_pairs import by_view_pair
 from .verify import residuals
 
-__all__ = ["DUPLICATE_PX", "better_placed_members"]
+__all__ = ["DUPLICATE_PX", "KEY_STEP", "merge_order", "better_placed_members"]
 
 #: Two keypoints of one view closer than this are near-duplicates: the homography's inlier
 #: tolerance (:data:`.verify.RANSAC_PX`), within which the model accepts either as the partner.
@@ -47,8 +51,8 @@ DUPLICATE_PX = 3.0
 
 def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUPLICATE_PX) -> np.ndarray:
     """``track`` with members replaced by, or exchanged with, the near-duplicates the
-    homographies place better (module docstring). A track changes at most one member, the
-    largest gain first.
+    homographies place better (module docstring, step 2). A track changes at most one member,
+    the largest gain first.
 
     Args:
         geometry: the window's :class:`.consistency.WindowGeometry`.
@@ -59,7 +63,7 @@ def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUP
         (N,) int64: the same track ids, over the same number of keypoints each.
     """
     track = np.array(track, np.int64, copy=True)
-    planar, tolerance = _homographies(geometry)
+    planar, tolerance = geometry.planar, _tolerances(geometry)
     if not planar.any() or not (track >= 0).any():
         return track
     member, rival = _near_duplicates(geometry, track, planar.any(axis=1), duplicate_px)
@@ -88,14 +92,13 @@ def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUP
     return track
 
 
-def _homographies(geometry):
-    """(V, V) whether a view pair is verified by a homography, and that homography's tolerance."""
+def _tolerances(geometry) -> np.ndarray:
+    """(V, V) the transfer error each view pair's homography accepts (:attr:`.verify.PairModel.px`)."""
     V = geometry.problem.n_views
-    planar, tolerance = np.zeros((V, V), bool), np.zeros((V, V))
+    tolerance = np.zeros((V, V))
     for (a, b), model in geometry.models.items():
-        planar[a, b] = planar[b, a] = model.planar
         tolerance[a, b] = tolerance[b, a] = model.px
-    return planar, tolerance
+    return tolerance
 
 
 class _Placement:
@@ -145,3 +148,67 @@ def _near_duplicates(geometry, track: np.ndarray, views: np.ndarray, duplicate_p
     i, j = i[near], j[near]
     flip = track[i] < 0  # the tracked one first
     return np.where(flip, j, i), np.where(flip, i, j)
+
+
+def merge_order(geometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray, candidates: np.ndarray,
+                duplicate_px: float = DUPLICATE_PX) -> np.ndarray:
+    """The keys greedy merging takes the pairs in (descending): the scores, each pair of a
+    homography view pair raised just above the competing pairs whose partner is a near-duplicate
+    of its own and placed worse (module docstring, step 1). The worse pair keeps its place behind
+    it, so it still joins where the better one cannot.
+
+    Args:
+        geometry: the window's :class:`.consistency.WindowGeometry`.
+        rows, cols, scores: (M,) pairs of keypoints of different views and their scores.
+        candidates: (M,) bool, the pairs that may be merged (only these compete).
+        duplicate_px: near-duplicates are closer than this (pixels).
+
+    Returns:
+        (M,) float64 keys; equal to ``scores`` where no pair competes.
+    """
+    keys = np.asarray(scores, np.float64).copy()
+    rows, cols, va, vb = geometry.in_view_order(rows, cols)
+    error = np.full(rows.shape[0], np.inf)
+    compete = np.zeros(rows.shape[0], bool)
+    listed = np.flatnonzero(candidates)
+    groups = by_view_pair(va[listed], vb[listed])
+    for (a, b), model in geometry.models.items():
+        if model.planar and (a, b) in groups:
+            m = listed[groups[(a, b)]]
+            error[m] = residuals(model.selected(), geometry.keypoints[rows[m]], geometry.keypoints[cols[m]])[0]
+            compete[m] = True
+    pairs = np.flatnonzero(compete)
+    if pairs.size < 2:
+        return keys
+    for anchor, partner in ((rows, cols), (cols, rows)):
+        # a keypoint's competing partners in one view are consecutive, the worst placed first
+        order = pairs[np.lexsort((-error[pairs], geometry.view_index[partner[pairs]], anchor[pairs]))]
+        _raise_better_placed(anchor[order], geometry.view_index[partner[order]], partner[order], order,
+                             geometry.keypoints, float(duplicate_px), keys)
+    return keys
+
+
+#: How far above a worse-placed competitor a pair's key is raised: below any score difference
+#: that matters, above the rounding of scores in [0, 1].
+KEY_STEP = 1e-9
+
+
+@numba.njit(cache=True)
+def _raise_better_placed(anchor, partner_view, partner, pair, keypoints, duplicate_px, keys):
+    """Over runs of equal (anchor, partner view), worst placed first: each pair's key is raised
+    above the keys of the worse-placed near-duplicate partners before it. Runs hold a handful
+    of pairs."""
+    n = anchor.shape[0]
+    start = 0
+    limit = duplicate_px * duplicate_px
+    while start < n:
+        end = start + 1
+        while end < n and anchor[end] == anchor[start] and partner_view[end] == partner_view[start]:
+            end += 1
+        for w in range(start + 1, end):
+            for u in range(start, w):
+                dx = keypoints[partner[u], 0] - keypoints[partner[w], 0]
+                dy = keypoints[partner[u], 1] - keypoints[partner[w], 1]
+                if dx * dx + dy * dy < limit and keys[pair[w]] <= keys[pair[u]]:
+                    keys[pair[w]] = keys[pair[u]] + KEY_STEP
+        start = end

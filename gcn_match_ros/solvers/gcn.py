@@ -112,11 +112,17 @@ class GCNSolverConfig(SolverConfig):
             point keeps the epipolar geometry but not its neighbours. 0: off. Measured in
             benchmarks/results/geometric_eval.md.
         min_shared_neighbours: see ``neighbours``.
-        prefer_localised: with ``verify``, a track whose view pairs are all verified by
-            homographies takes, of near-duplicate keypoints (closer than
+        prefer_localised: with ``verify``, tracks take of near-duplicate keypoints (closer than
             :data:`gcn_match_ros.edges.duplicates.DUPLICATE_PX`: ORB's pyramid levels report
-            one corner several times), the ones they place best
+            one corner several times) the ones the homographies of their view pairs place best
             (:mod:`gcn_match_ros.edges.duplicates`).
+        planar_threshold: with ``verify``, the threshold of a window that sees one plane (every
+            view pair verified by a homography,
+            :attr:`gcn_match_ros.edges.consistency.WindowGeometry.one_plane`): its pairs are
+            checked point to point, so none of the repetitions along an epipolar line that the
+            precision-first ``threshold`` guards against pass. < 0: ``threshold`` when that is set,
+            else the loaded model's choice (``config["solver"]["planar_threshold"]``: its
+            validation-F1 threshold, models/README.md), else ``threshold``.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -140,6 +146,7 @@ class GCNSolverConfig(SolverConfig):
     neighbours: int = NEIGHBOURS
     min_shared_neighbours: int = MIN_SHARED
     prefer_localised: bool = True
+    planar_threshold: float = -1.0
     parallel: bool = True
 
     def __post_init__(self) -> None:
@@ -148,8 +155,10 @@ class GCNSolverConfig(SolverConfig):
         if self.graph_normalization and self.graph_normalization not in NORMALIZATIONS:
             raise ValueError(f"graph_normalization must be one of {NORMALIZATIONS} or '' (the model's choice), "
                              f"got {self.graph_normalization!r}")
-        if not (0.0 <= self.threshold <= 1.0 or self.threshold == -1.0):
-            raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
+        for name in ("threshold", "planar_threshold"):
+            value = getattr(self, name)
+            if not (0.0 <= value <= 1.0 or value == -1.0):
+                raise ValueError(f"{name} must be in [0, 1] (or -1: the model's choice), got {value}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         if not 0.0 <= self.unverified_threshold <= 1.0:
@@ -202,6 +211,16 @@ class GCNSolver(Solver):
         if self.config.threshold >= 0:
             return self.config.threshold
         return float(self._model_choice("threshold", 0.5))
+
+    @property
+    def planar_threshold(self) -> float:
+        """The planar_threshold setting, else the threshold setting, else the one stored with the
+        loaded model, else :attr:`threshold` (:class:`GCNSolverConfig`)."""
+        if self.config.planar_threshold >= 0:
+            return self.config.planar_threshold
+        if self.config.threshold >= 0:
+            return self.config.threshold
+        return float(self._model_choice("planar_threshold", self.threshold))
 
     @property
     def chained_models(self) -> bool:
@@ -328,7 +347,8 @@ class GCNSolver(Solver):
                                           self.chained_models, self.config.rotation_cycles,
                                           self.config.neighbours, self.config.min_shared_neighbours,
                                           functools.partial(near_copies, geometry, similarity, normalization),
-                                          prefer_localised=self.config.prefer_localised)
+                                          prefer_localised=self.config.prefer_localised,
+                                          planar_threshold=self.planar_threshold)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
