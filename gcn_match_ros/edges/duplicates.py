@@ -71,7 +71,7 @@ def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUP
         return track
     t_member, t_rival = track[member], track[rival]
     free = t_rival < 0
-    placement = _Placement(geometry, track, planar, tolerance)
+    placement = _Placement(geometry, track, tolerance)
     other = np.where(free, t_member, t_rival)
     # P(m, T), P(d, T), P(d, T'), P(m, T') in one pass
     p_mt, p_dt, p_do, p_mo = np.split(placement(np.r_[member, rival, rival, member],
@@ -106,14 +106,15 @@ class _Placement:
     view whose view pair with x's is not verified by a homography or whose homography x
     disagrees with."""
 
-    def __init__(self, geometry, track, planar, tolerance):
-        self.geometry, self.track, self.planar, self.tolerance = geometry, track, planar, tolerance
+    def __init__(self, geometry, track: np.ndarray, tolerance: np.ndarray) -> None:
+        self.geometry, self.tolerance = geometry, tolerance
         tracked = np.flatnonzero(track >= 0)
         self.by_track = tracked[np.argsort(track[tracked], kind="stable")]
         self.size = np.bincount(track[tracked], minlength=track.max() + 1)
         self.first = np.r_[0, np.cumsum(self.size)[:-1]]
 
     def __call__(self, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Shapes: x (Q,) keypoints, t (Q,) track ids -> (Q,) float64."""
         view, kp = self.geometry.view_index, self.geometry.keypoints
         n = self.size[t]
         k = np.repeat(np.arange(x.size), n)
