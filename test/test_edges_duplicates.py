@@ -31,32 +31,51 @@ def _geometry(problem, planar=True):
     return WindowGeometry(problem, {(0, 1): model})
 
 
+def _plane_window(xa, xb, px=3.0):
+    """Views a, b and a third view of the plane, each padded with far keypoints to the size a
+    model needs, every view pair verified by its homography: a one-plane window. Returns the
+    geometry and the offset of view b."""
+    filler = np.c_[np.arange(12) * 20.0 + 400.0, np.full(12, 400.0)]
+    views = [np.r_[xa, filler], np.r_[xb, filler + SHIFT], np.r_[xa, filler] + 2 * SHIFT]
+    sizes = [len(v) for v in views]
+    problem = Problem(view_offsets=np.r_[0, np.cumsum(sizes)], keypoints=np.concatenate(views).astype(np.float32),
+                      descriptors=np.zeros((sum(sizes), 8), np.float32))
+    models = {(0, 1): H, (0, 2): H @ H, (1, 2): H}
+    geometry = WindowGeometry(problem, {k: PairModel(H=Hk, F=None, planar=True, seeds=12, inliers_h=12, px=px)
+                                        for k, Hk in models.items()})
+    assert geometry.one_plane
+    return geometry, sizes[0]
+
+
 def test_verified_tracks_takes_the_better_placed_duplicate_only_when_asked():
     xa, xb = _points()
-    problem = _window(xa, xb)
-    n_a = len(xa)
-    rows, cols = np.array([0, 0]), n_a + np.array([0, 4])
+    geometry, b = _plane_window(xa, xb)
+    rows, cols = np.array([0, 0]), b + np.array([0, 4])
     scores = np.array([0.7, 0.8])  # the duplicate scores higher: merged first without the rule
-    keep, track = verified_tracks(_geometry(problem), rows, cols, scores, 0.5)
-    assert keep.all() and track[0] == track[n_a + 4] and track[n_a] == -1
-    keep, track = verified_tracks(_geometry(problem), rows, cols, scores, 0.5, prefer_localised=True)
+    keep, track = verified_tracks(geometry, rows, cols, scores, 0.5)
+    assert keep.all() and track[0] == track[b + 4] and track[b] == -1
+    keep, track = verified_tracks(geometry, rows, cols, scores, 0.5, prefer_localised=True)
     # both pairs stay published; the track takes the better-placed keypoint
-    assert keep.all() and track[0] == track[n_a] and track[n_a + 4] == -1
+    assert keep.all() and track[0] == track[b] and track[b + 4] == -1
+    # two views only: not one plane (a homography also fits a 3-D scene seen with little
+    # parallax), the merge decides as scored
+    problem = _window(np.r_[xa, np.zeros((12, 2)) + 500], np.r_[xb, np.zeros((12, 2)) + 600])
+    two = WindowGeometry(problem, {(0, 1): PairModel(H=H, F=None, planar=True, seeds=12, inliers_h=12, px=3.0)})
+    assert not two.one_plane
+    _, track = verified_tracks(two, rows, cols, scores, 0.5, prefer_localised=True)
+    assert track[0] >= 0 and track[0] == track[b + 4] and track[b] == -1
 
 
 def test_two_tracks_exchange_near_duplicates_the_homography_places_the_other_way_round():
     xa, xb = _points()
-    problem = _window(xa, xb)
-    n_a = len(xa)
     # the true image of point 0 went to point 2 (a wrong pair the huge tolerance lets agree),
     # point 0 to its duplicate: exchanged, both tracks keep their size
-    geometry = WindowGeometry(problem, {(0, 1): PairModel(H=H, F=None, planar=True, seeds=4, inliers_h=4,
-                                                          px=100.0)})
-    rows, cols = np.array([2, 0]), n_a + np.array([0, 4])
+    geometry, b = _plane_window(xa, xb, px=100.0)
+    rows, cols = np.array([2, 0]), b + np.array([0, 4])
     _, before = verified_tracks(geometry, rows, cols, np.array([0.99, 0.8]), 0.5)
-    assert before[2] == before[n_a] and before[0] == before[n_a + 4]
+    assert before[2] == before[b] and before[0] == before[b + 4]
     _, track = verified_tracks(geometry, rows, cols, np.array([0.99, 0.8]), 0.5, prefer_localised=True)
-    assert track[0] == track[n_a] == before[0] and track[2] == track[n_a + 4] == before[2]
+    assert track[0] == track[b] == before[0] and track[2] == track[b + 4] == before[2]
 
 
 def test_a_track_swaps_a_member_for_the_better_placed_free_duplicate():
@@ -130,6 +149,10 @@ def test_one_plane_needs_every_view_pair_verified_by_a_homography():
     assert not WindowGeometry(problem, {k: m for k, m in models.items() if k != (1, 2)}).one_plane  # unverified
     assert not WindowGeometry(problem, _three_views((True, True, False))[1]).one_plane  # an epipolar model
     assert not WindowGeometry(problem, {}).one_plane
+    # two of the three views too small for a model: fewer than three views to judge by
+    small = Problem(view_offsets=np.array([0, 16, 20, 24]), keypoints=problem.keypoints[:24],
+                    descriptors=problem.descriptors[:24])
+    assert not WindowGeometry(small, {(0, 1): models[(0, 1)]}).one_plane
 
 
 def test_the_planar_threshold_applies_in_one_plane_windows_only():

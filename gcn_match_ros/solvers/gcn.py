@@ -112,12 +112,13 @@ class GCNSolverConfig(SolverConfig):
             point keeps the epipolar geometry but not its neighbours. 0: off. Measured in
             benchmarks/results/geometric_eval.md.
         min_shared_neighbours: see ``neighbours``.
-        prefer_localised: with ``verify``, tracks take of near-duplicate keypoints (closer than
+        prefer_localised: with ``verify``, the tracks of a window that sees one plane (see
+            ``planar_threshold``) take of near-duplicate keypoints (closer than
             :data:`gcn_match_ros.edges.duplicates.DUPLICATE_PX`: ORB's pyramid levels report
-            one corner several times) the ones the homographies of their view pairs place best
+            one corner several times) the ones the homographies place best
             (:mod:`gcn_match_ros.edges.duplicates`).
         planar_threshold: with ``verify``, the threshold of a window that sees one plane (every
-            view pair verified by a homography,
+            view pair of at least three views verified by a homography,
             :attr:`gcn_match_ros.edges.consistency.WindowGeometry.one_plane`): its pairs are
             checked point to point, so none of the repetitions along an epipolar line that the
             precision-first ``threshold`` guards against pass. < 0: ``threshold`` when that is set,

@@ -45,9 +45,9 @@ class NNRansacConfig(SolverConfig):
     ``guided``, strong pairs with a near-copy along their epipolar line are dropped, as gcn does
     (:mod:`gcn_match_ros.edges.ambiguity`; 0: off); neighbours, min_shared_neighbours: with ``guided``,
     near-copy pairs that keep too few of their neighbours are dropped, as gcn does
-    (:mod:`gcn_match_ros.edges.neighbourhood`; 0: off); prefer_localised: with ``guided``, tracks take the
-    near-duplicate keypoints their homographies place best, as gcn's do
-    (:mod:`gcn_match_ros.edges.duplicates`). The ``graph`` setting is not used (no graph is built)."""
+    (:mod:`gcn_match_ros.edges.neighbourhood`; 0: off); prefer_localised: with ``guided``, the tracks of a
+    window that sees one plane take the near-duplicate keypoints its homographies place best, as
+    gcn's do (:mod:`gcn_match_ros.edges.duplicates`). The ``graph`` setting is not used (no graph is built)."""
 
     threshold: float = 0.0
     px: float = 3.0
