@@ -169,3 +169,19 @@ def test_the_planar_threshold_applies_in_one_plane_windows_only():
     problem, models = _three_views((True, True, False))
     _, track = verified_tracks(WindowGeometry(problem, models), rows, cols, scores, 0.5, planar_threshold=0.3)
     assert joined(track) == [True, False, False, False]
+
+
+def test_pairs_of_a_view_too_small_to_check_keep_the_precision_first_threshold():
+    """A fourth view of 4 keypoints (fewer than a model needs) in a one-plane window: its pairs
+    are kept as scored, not checked point to point, so they merge at the threshold, not the
+    planar one."""
+    problem, models = _three_views()
+    xa = problem.keypoints[:4]
+    four = Problem(view_offsets=np.array([0, 16, 32, 48, 52]),
+                   keypoints=np.concatenate([problem.keypoints, xa + 3 * SHIFT]).astype(np.float32),
+                   descriptors=np.zeros((52, 8), np.float32))
+    geometry = WindowGeometry(four, models)
+    assert geometry.one_plane and geometry.small[3]
+    rows, cols = np.array([1, 2]), np.array([17, 49])  # view 0 -> view 1 (checked), view 0 -> view 3
+    _, track = verified_tracks(geometry, rows, cols, np.array([0.4, 0.4]), 0.5, planar_threshold=0.3)
+    assert track[1] == track[17] >= 0 and track[49] == -1

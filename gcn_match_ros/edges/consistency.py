@@ -327,11 +327,11 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                     ) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). In a window that sees
-    one plane (:attr:`WindowGeometry.one_plane`) the threshold is ``planar_threshold`` when given:
-    the precision-first threshold guards against repetitions along epipolar lines, which a
-    point-to-point check does not let through. With ``prefer_localised``, tracks of a one-plane
-    window take of near-duplicate keypoints the ones the homographies place best
-    (:mod:`.duplicates`: ranked before the merge, exchanged after it). With
+    one plane (:attr:`WindowGeometry.one_plane`) the pairs checked by its homographies merge at
+    ``planar_threshold`` when given: the precision-first threshold guards against repetitions
+    along epipolar lines, which a point-to-point check does not let through. With
+    ``prefer_localised``, tracks of a one-plane window take of near-duplicate keypoints the ones
+    the homographies place best (:mod:`.duplicates`: ranked before the merge, exchanged after it). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
     (:meth:`WindowGeometry.with_closed_rotation_cycles`); with ``chained_models`` the geometry
     then gains the chained models of its unverified view pairs (module docstring). With
@@ -351,9 +351,12 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
             geometry = chained
             keep = geometry.keep(rows, cols, scores)
     one_plane = geometry.one_plane
+    merge_at = threshold
     if one_plane and planar_threshold is not None:
-        threshold = planar_threshold
-    merged = keep & (scores >= threshold)
+        # pairs with a view too small for a model are kept as scored, not checked point to point
+        unchecked = geometry.small[geometry.view_index[rows]] | geometry.small[geometry.view_index[cols]]
+        merge_at = np.where(unchecked, threshold, planar_threshold)
+    merged = keep & (scores >= merge_at)
     if neighbours:
         judged = keep.copy()
         if judge is not None:
