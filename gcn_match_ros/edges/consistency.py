@@ -96,8 +96,10 @@ class WindowGeometry:
         for (a, b), model in self.models.items():
             self.verified[a, b] = self.verified[b, a] = True
             self.planar[a, b] = self.planar[b, a] = model.planar
+        #: (V, V) symmetric: both views are large enough for a model
+        self._checkable = ~(self.small[:, None] | self.small[None, :])
         #: (V, V) symmetric: no trusted model although both views are large enough for one
-        self.unverified = ~self.verified & ~(self.small[:, None] | self.small[None, :])
+        self.unverified = ~self.verified & self._checkable
         self._offsets = problem.view_offsets
 
     @property
@@ -109,8 +111,7 @@ class WindowGeometry:
         landmarks fragmented 1.11 -> 1.41 per point when such windows counted)."""
         if int((~self.small).sum()) < 3:
             return False
-        checkable = np.triu(~(self.small[:, None] | self.small[None, :]), 1)
-        return bool(self.planar[checkable].all())
+        return bool(self.planar[np.triu(self._checkable, 1)].all())
 
     def unverified_pairs(self) -> List[ViewPair]:
         """View pairs (a, b), a < b, without a trusted model whose views are large enough to have one."""

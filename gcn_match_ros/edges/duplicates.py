@@ -60,19 +60,17 @@ def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUP
         (N,) int64: the same track ids, over the same number of keypoints each.
     """
     track = np.array(track, np.int64, copy=True)
-    planar, tolerance = geometry.planar, _tolerances(geometry)
-    if not planar.any() or not (track >= 0).any():
+    if not geometry.planar.any() or not (track >= 0).any():
         return track
-    member, rival = _near_duplicates(geometry, track, planar.any(axis=1), duplicate_px)
+    member, rival = _near_duplicates(geometry, track, geometry.planar.any(axis=1), duplicate_px)
     if member.size == 0:
         return track
     t_member, t_rival = track[member], track[rival]
     free = t_rival < 0
-    placement = _Placement(geometry, track, tolerance)
     other = np.where(free, t_member, t_rival)
     # P(m, T), P(d, T), P(d, T'), P(m, T') in one pass
-    p_mt, p_dt, p_do, p_mo = np.split(placement(np.r_[member, rival, rival, member],
-                                                np.r_[t_member, t_member, other, other]), 4)
+    p_mt, p_dt, p_do, p_mo = np.split(_placements(geometry, track, np.r_[member, rival, rival, member],
+                                                  np.r_[t_member, t_member, other, other]), 4)
     with np.errstate(invalid="ignore"):  # inf - inf: neither placed, no gain (nan)
         gain = np.where(free, p_mt - p_dt, p_mt - p_dt + p_do - p_mo)
     usable = np.isfinite(gain) & (gain > 0)
@@ -89,44 +87,45 @@ def better_placed_members(geometry, track: np.ndarray, duplicate_px: float = DUP
     return track
 
 
-def _tolerances(geometry) -> np.ndarray:
-    """(V, V) the transfer error each view pair's homography accepts (:attr:`.verify.PairModel.px`)."""
-    V = geometry.problem.n_views
-    tolerance = np.zeros((V, V))
-    for (a, b), model in geometry.models.items():
-        tolerance[a, b] = tolerance[b, a] = model.px
-    return tolerance
+def _homography_errors(geometry, lo: np.ndarray, hi: np.ndarray):
+    """Each pair's symmetric transfer error under its view pair's homography, and the error that
+    homography accepts (:attr:`.verify.PairModel.px`); inf and 0 where the view pair is not
+    verified by a homography.
+
+    Shapes: lo, hi (M,) keypoints, lo's view below hi's -> (M,), (M,) float64.
+    """
+    view, kp = geometry.view_index, geometry.keypoints
+    error, tolerance = np.full(lo.shape[0], np.inf), np.zeros(lo.shape[0])
+    for (a, b), m in by_view_pair(view[lo], view[hi]).items():
+        model = geometry.models.get((a, b))
+        if model is not None and model.planar:
+            error[m] = residuals(model.selected(), kp[lo[m]], kp[hi[m]])[0]
+            tolerance[m] = model.px
+    return error, tolerance
 
 
-class _Placement:
-    """P(x, T) of module docstring for many (x, T) at once: +inf where T has a member in another
-    view whose view pair with x's is not verified by a homography or whose homography x
-    disagrees with."""
+def _placements(geometry, track: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """P(x, T) of the module docstring for many (x, T) at once: +inf where T has a member in
+    another view whose view pair with x's is not verified by a homography or whose homography x
+    disagrees with.
 
-    def __init__(self, geometry, track: np.ndarray, tolerance: np.ndarray) -> None:
-        self.geometry, self.tolerance = geometry, tolerance
-        tracked = np.flatnonzero(track >= 0)
-        self.by_track = tracked[np.argsort(track[tracked], kind="stable")]
-        self.size = np.bincount(track[tracked], minlength=track.max() + 1)
-        self.first = np.r_[0, np.cumsum(self.size)[:-1]]
-
-    def __call__(self, x: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Shapes: x (Q,) keypoints, t (Q,) track ids -> (Q,) float64."""
-        view, kp = self.geometry.view_index, self.geometry.keypoints
-        n = self.size[t]
-        k = np.repeat(np.arange(x.size), n)
-        other = self.by_track[self.first[t][k] + np.arange(k.size) - np.repeat(np.cumsum(n) - n, n)]
-        apart = view[other] != view[x[k]]
-        k, other, xk = k[apart], other[apart], x[k[apart]]
-        error = np.full(k.size, np.inf)
-        lo = view[xk] < view[other]
-        a_kp, b_kp = np.where(lo, xk, other), np.where(lo, other, xk)
-        for (a, b), m in by_view_pair(view[a_kp], view[b_kp]).items():
-            model = self.geometry.models.get((a, b))
-            if model is not None and model.planar:
-                error[m] = residuals(model.selected(), kp[a_kp[m]], kp[b_kp[m]])[0]
-        error[~(error <= self.tolerance[view[xk], view[other]])] = np.inf
-        return np.bincount(k, weights=error, minlength=x.size)
+    Shapes: track (N,); x (Q,) keypoints, t (Q,) track ids -> (Q,) float64.
+    """
+    view = geometry.view_index
+    tracked = np.flatnonzero(track >= 0)
+    by_track = tracked[np.argsort(track[tracked], kind="stable")]
+    size = np.bincount(track[tracked], minlength=track.max() + 1)
+    first = np.r_[0, np.cumsum(size)[:-1]]
+    # every (x, member of T)
+    n = size[t]
+    k = np.repeat(np.arange(x.size), n)
+    other = by_track[first[t][k] + np.arange(k.size) - np.repeat(np.cumsum(n) - n, n)]
+    apart = view[other] != view[x[k]]
+    k, other, xk = k[apart], other[apart], x[k[apart]]
+    below = view[xk] < view[other]
+    error, tolerance = _homography_errors(geometry, np.where(below, xk, other), np.where(below, other, xk))
+    error[~(error <= tolerance)] = np.inf
+    return np.bincount(k, weights=error, minlength=x.size)
 
 
 def _near_duplicates(geometry, track: np.ndarray, views: np.ndarray, duplicate_px: float):
@@ -165,17 +164,11 @@ def merge_order(geometry, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray
         (M,) float64 keys; equal to ``scores`` where no pair competes.
     """
     keys = np.asarray(scores, np.float64).copy()
-    rows, cols, va, vb = geometry.in_view_order(rows, cols)
-    error = np.full(rows.shape[0], np.inf)
-    compete = np.zeros(rows.shape[0], bool)
+    rows, cols, _, _ = geometry.in_view_order(rows, cols)
     listed = np.flatnonzero(candidates)
-    groups = by_view_pair(va[listed], vb[listed])
-    for (a, b), model in geometry.models.items():
-        if model.planar and (a, b) in groups:
-            m = listed[groups[(a, b)]]
-            error[m] = residuals(model.selected(), geometry.keypoints[rows[m]], geometry.keypoints[cols[m]])[0]
-            compete[m] = True
-    pairs = np.flatnonzero(compete)
+    error = np.full(rows.shape[0], np.inf)
+    error[listed] = _homography_errors(geometry, rows[listed], cols[listed])[0]
+    pairs = np.flatnonzero(np.isfinite(error))
     if pairs.size < 2:
         return keys
     for anchor, partner in ((rows, cols), (cols, rows)):
