@@ -41,7 +41,8 @@ from gcn_match_ros.plots import plot_reliability
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["gcn", "gcn:planar_threshold=0.5", "gcn:prefer_localised=false,planar_threshold=0.5",
            "gcn:neighbours=0", "gcn:epipolar_ratio=0", "gcn:epipolar_fine_px=0", "gcn:epipolar_ratio=0.85",
-           "gcn:epipolar_ratio=0.8", "gcn:rotation_cycles=true", "gcn:epipolar_fit_px=0.5", "gcn:verify=false",
+           "gcn:epipolar_ratio=0.8", "gcn:rotation_cycles=true", "gcn:support_threshold=0.8", "gcn:epipolar_fit_px=0.5",
+           "gcn:verify=false",
            "nn", "nn-ransac", "nn-ransac:guided=true", "nn-ransac:guided=true,prefer_localised=false",
            "nn-ransac:guided=true,epipolar_ratio=0.9", "nn-ransac:guided=true,rotation_cycles=true",
            "nn-ransac:guided=true,neighbours=8"]

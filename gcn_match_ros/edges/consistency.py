@@ -48,12 +48,13 @@ import numpy as np
 
 from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
-from ..rounding import MergeTest, greedy_tracks, tracks_to_pairs
+from ..rounding import MergeTest, greedy_tracks, relabel_tracks, tracks_to_pairs
 from ..view_pairs import by_view_pair
 from .candidates import EdgeConfig
 from .duplicates import better_placed_members, merge_order
 from .neighbourhood import MIN_SHARED, followed_pairs
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
+from .support import unsupported_tracks
 from .verify import MIN_SEEDS, PairModel, sampson_error_px, transfer_error_px
 
 __all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
@@ -324,8 +325,8 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                     threshold: float, chained_models: bool = False, rotation_cycles: bool = False,
                     neighbours: int = 0, min_shared: int = MIN_SHARED,
                     judge: Optional[Callable[[np.ndarray, np.ndarray], np.ndarray]] = None,
-                    prefer_localised: bool = False, planar_threshold: Optional[float] = None
-                    ) -> Tuple[np.ndarray, np.ndarray]:
+                    prefer_localised: bool = False, planar_threshold: Optional[float] = None,
+                    support_threshold: float = 0.0) -> Tuple[np.ndarray, np.ndarray]:
     """The pairs ``geometry`` keeps, and tracks merged greedily from those scoring at least
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). In a window that sees
     one plane (:attr:`WindowGeometry.one_plane`) the pairs checked by its homographies merge at
@@ -339,6 +340,8 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     ``neighbours`` = k > 0, a kept pair that ``judge`` (rows, cols) -> bool picks (None: every
     one) and that shares fewer than ``min_shared`` of its k nearest kept pairs scoring at least
     ``threshold`` in both views is dropped before the tracks are merged (:mod:`.neighbourhood`).
+    With ``support_threshold`` > 0, a track of two that other views verified against both should
+    show, yet none joined, is dissolved unless its pair scores at least that (:mod:`.support`).
 
     Shapes: rows, cols, scores (M,) -> keep (M,) bool, track (N,) int64 (-1: in no track).
     """
@@ -371,4 +374,8 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                           keys[merged], -np.inf, compatible=check)
     if prefer_localised and one_plane:
         track = better_placed_members(geometry, track)
+    if support_threshold > 0:
+        dissolved = unsupported_tracks(geometry, track, rows[merged], cols[merged], scores[merged], support_threshold)
+        if dissolved.size:
+            track = relabel_tracks(np.where(np.isin(track, dissolved), -1, track))
     return keep, track

@@ -124,6 +124,13 @@ class GCNSolverConfig(SolverConfig):
             precision-first ``threshold`` guards against pass. < 0: ``threshold`` when that is set,
             else the loaded model's choice (``config["solver"]["planar_threshold"]``: its
             validation-F1 threshold, models/README.md), else ``threshold``.
+        support_threshold: with ``verify``, a track of two that at least
+            :data:`gcn_match_ros.edges.support.MIN_EXPECTED` other views verified against both
+            of its views should show, yet none joined, is kept only when its pair scores at
+            least this (:mod:`gcn_match_ros.edges.support`): for views of unoccluded surfaces
+            with repetitions (castle-P19's facades with SIFT, 0.8: geometric precision at
+            separation 3 0.84 -> 0.86); off by default, as it takes a point inside a view for one
+            seen there (generated scenes with partial visibility lose F1). 0: off.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -148,6 +155,7 @@ class GCNSolverConfig(SolverConfig):
     min_shared_neighbours: int = MIN_SHARED
     prefer_localised: bool = True
     planar_threshold: float = -1.0
+    support_threshold: float = 0.0
     parallel: bool = True
 
     def __post_init__(self) -> None:
@@ -162,8 +170,9 @@ class GCNSolverConfig(SolverConfig):
                 raise ValueError(f"{name} must be in [0, 1] (or -1: the model's choice), got {value}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
-        if not 0.0 <= self.unverified_threshold <= 1.0:
-            raise ValueError(f"unverified_threshold must be in [0, 1], got {self.unverified_threshold}")
+        for name in ("unverified_threshold", "support_threshold"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         check_ratio(self.epipolar_ratio)
         check_neighbourhood(self.neighbours, self.min_shared_neighbours)
         if not self.epipolar_fit_px > 0.0:
@@ -349,7 +358,8 @@ class GCNSolver(Solver):
                                           self.config.neighbours, self.config.min_shared_neighbours,
                                           functools.partial(near_copies, geometry, similarity, normalization),
                                           prefer_localised=self.config.prefer_localised,
-                                          planar_threshold=self.planar_threshold)
+                                          planar_threshold=self.planar_threshold,
+                                          support_threshold=self.config.support_threshold)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
