@@ -51,7 +51,10 @@ def _placed_in(geometry, view: int, other: int, x: np.ndarray):
     a, b = min(view, other), max(view, other)
     model = geometry.models[(a, b)]
     if model.planar:
-        H = model.H if view == a else np.linalg.inv(model.H)
+        try:
+            H = model.H if view == a else np.linalg.inv(model.H)
+        except np.linalg.LinAlgError:  # places nothing (as WindowGeometry.transfers)
+            return "point", np.full_like(x, np.nan)
         return "point", transfer(H, x)
     h = homogeneous(x)
     return "line", (h @ model.F.T if view == a else h @ model.F)
