@@ -126,3 +126,16 @@ def test_verified_tracks_dissolves_unsupported_tracks_only_when_asked(threshold,
     assert track.max() == kept - 1  # renumbered
     assert (track[rows] == track[cols]).all()  # a track of two kept whole, or dissolved whole
     assert (track[rows[[0, 2]]] < 0).all() == (threshold > 0)
+
+
+def test_without_image_sizes_a_view_is_where_its_keypoints_lie():
+    problem, geometry = _window(POINTS)
+    n = len(POINTS)
+    kp = problem.keypoints.reshape(4, n, 2)
+    lo, hi = kp[2:].min(axis=1), kp[2:].max(axis=1)  # views 2 and 3: their keypoints' extent
+    interior = ((kp[2:] > lo[:, None] + 1) & (kp[2:] < hi[:, None] - 1)).all(axis=(0, 2))
+    assert interior.sum() >= 4
+    problem.image_size = None
+    rows, cols = np.arange(n), n + np.arange(n)
+    expected = expected_views(WindowGeometry(problem, geometry.models), rows, cols)
+    assert (expected[interior] == 2).all()
