@@ -11,7 +11,7 @@ from typing import Dict, Tuple
 
 import numpy as np
 
-__all__ = ["by_view_pair"]
+__all__ = ["by_view_pair", "in_view_order"]
 
 
 def by_view_pair(view_a: np.ndarray, view_b: np.ndarray) -> Dict[Tuple[int, int], np.ndarray]:
@@ -30,3 +30,15 @@ def by_view_pair(view_a: np.ndarray, view_b: np.ndarray) -> Dict[Tuple[int, int]
     starts = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
     ends = np.r_[starts[1:], key.size]
     return {(int(k // width), int(k % width)): order[s:e] for k, s, e in zip(sorted_key[starts], starts, ends)}
+
+
+def in_view_order(view_index: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> Tuple[np.ndarray, ...]:
+    """Pairs with each one's keypoint of the lower view first, and their views.
+
+    Shapes: view_index (N,); rows, cols (M,) keypoints of different views -> rows, cols, view of
+    rows, view of cols (M,) int64.
+    """
+    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+    va, vb = view_index[rows], view_index[cols]
+    swap = va > vb
+    return np.where(swap, cols, rows), np.where(swap, rows, cols), np.minimum(va, vb), np.maximum(va, vb)

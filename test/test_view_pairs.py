@@ -1,7 +1,7 @@
 """Tests of gcn_match_ros.view_pairs: grouping pairs by view pair, known answers."""
 import numpy as np
 
-from gcn_match_ros.view_pairs import by_view_pair
+from gcn_match_ros.view_pairs import by_view_pair, in_view_order
 
 
 def test_groups_equal_the_masks_in_ascending_order():
@@ -21,3 +21,10 @@ def test_groups_equal_the_masks_in_ascending_order():
 
 def test_no_pairs_no_groups():
     assert by_view_pair(np.zeros(0, np.int64), np.zeros(0, np.int64)) == {}
+
+
+def test_in_view_order_puts_the_lower_views_keypoint_first():
+    view_index = np.array([0, 0, 1, 1, 2])
+    rows, cols, va, vb = in_view_order(view_index, np.array([2, 0, 4]), np.array([1, 3, 2]))
+    assert rows.tolist() == [1, 0, 2] and cols.tolist() == [2, 3, 4]
+    assert va.tolist() == [0, 0, 1] and vb.tolist() == [1, 1, 2]

@@ -49,7 +49,7 @@ import numpy as np
 from ..geometry import homogeneous, transfer, unproject
 from ..problem import Problem
 from ..rounding import MergeTest, greedy_tracks, relabel_tracks, tracks_to_pairs
-from ..view_pairs import by_view_pair
+from ..view_pairs import by_view_pair, in_view_order
 from .candidates import EdgeConfig
 from .duplicates import better_placed_members, merge_order
 from .neighbourhood import MIN_SHARED, followed_pairs
@@ -204,10 +204,7 @@ class WindowGeometry:
 
         Shapes: rows, cols (M,) -> rows, cols, view of rows, view of cols (M,) int64.
         """
-        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        va, vb = self.view_index[rows], self.view_index[cols]
-        swap = va > vb
-        return np.where(swap, cols, rows), np.where(swap, rows, cols), np.minimum(va, vb), np.maximum(va, vb)
+        return in_view_order(self.view_index, rows, cols)
 
     def agree(self, rows: np.ndarray, cols: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """Whether each pair may be matched on geometric grounds alone: it agrees with its

@@ -37,7 +37,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..view_pairs import by_view_pair
+from ..view_pairs import by_view_pair, in_view_order
 
 __all__ = ["NEIGHBOURS", "MIN_SHARED", "shared_neighbours", "followed_pairs", "check_neighbourhood"]
 
@@ -100,14 +100,12 @@ def followed_pairs(keypoints: np.ndarray, view_index: np.ndarray, rows: np.ndarr
 
     Shapes: keypoints (N, 2); view_index (N,); rows, cols, judged, ref (M,) -> (M,) bool.
     """
-    rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-    out = np.ones(rows.shape[0], bool)
+    out = np.ones(np.shape(rows)[0], bool)
     if k == 0 or min_shared == 0 or not judged.any():
         return out
-    va, vb = view_index[rows], view_index[cols]
-    lo, hi = np.where(va < vb, rows, cols), np.where(va < vb, cols, rows)
+    lo, hi, va, vb = in_view_order(view_index, rows, cols)
     counted = np.flatnonzero(judged | ref)
-    for at in by_view_pair(np.minimum(va, vb)[counted], np.maximum(va, vb)[counted]).values():
+    for at in by_view_pair(va[counted], vb[counted]).values():
         at = counted[at]
         if not judged[at].any():
             continue
