@@ -31,11 +31,15 @@ nn-ransac's consistent pairs (benchmarks/results/geometric_eval.md).
 """
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..geometry import homogeneous, transfer
+from ..view_pairs import by_view_pair
+
+if TYPE_CHECKING:  # consistency imports this module
+    from .consistency import WindowGeometry
 
 __all__ = ["MIN_EXPECTED", "MIN_CROSSING_DEG", "expected_views", "unsupported_tracks"]
 
@@ -45,7 +49,7 @@ MIN_EXPECTED = 2
 MIN_CROSSING_DEG = 5.0
 
 
-def _placed_in(geometry, view: int, other: int, x: np.ndarray):
+def _placed_in(geometry: "WindowGeometry", view: int, other: int, x: np.ndarray):
     """What the model of (view, other) makes of keypoints ``x`` of ``view`` in ``other``:
     ('point', (n, 2)) under a homography, ('line', (n, 3)) under F."""
     a, b = min(view, other), max(view, other)
@@ -74,7 +78,7 @@ def _crossings(la: np.ndarray, lb: np.ndarray) -> np.ndarray:
     return out
 
 
-def _bounds(geometry, view: int) -> np.ndarray:
+def _bounds(geometry: "WindowGeometry", view: int) -> np.ndarray:
     """(4,) x0, y0, x1, y1 of a view: its image, or where its keypoints lie if its size is unknown."""
     size = geometry.problem.image_size
     if size is not None:
@@ -83,7 +87,7 @@ def _bounds(geometry, view: int) -> np.ndarray:
     return np.r_[kp.min(0), kp.max(0)] if kp.size else np.zeros(4)
 
 
-def expected_views(geometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+def expected_views(geometry: "WindowGeometry", rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """How many other views verified against both views of each pair place its point inside
     themselves (module docstring).
 
@@ -97,8 +101,7 @@ def expected_views(geometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     rows, cols, va, vb = geometry.in_view_order(rows, cols)
     count = np.zeros(rows.shape[0], np.int64)
     verified = geometry.verified & ~(geometry.small[:, None] | geometry.small[None, :])
-    for (i, j) in {(int(a), int(b)) for a, b in zip(va.tolist(), vb.tolist())}:
-        m = np.flatnonzero((va == i) & (vb == j))
+    for (i, j), m in by_view_pair(va, vb).items():
         xa, xb = geometry.keypoints[rows[m]], geometry.keypoints[cols[m]]
         for k in np.flatnonzero(verified[i] & verified[j]).tolist():
             if k in (i, j):
@@ -112,9 +115,8 @@ def expected_views(geometry, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return count
 
 
-def unsupported_tracks(geometry, track: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                       scores: np.ndarray, threshold: float, min_expected: int = MIN_EXPECTED
-                       ) -> Optional[np.ndarray]:
+def unsupported_tracks(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                       scores: np.ndarray, threshold: float, min_expected: int = MIN_EXPECTED) -> np.ndarray:
     """The tracks of two whose point at least ``min_expected`` other views should show and whose
     pair scores below ``threshold`` (module docstring).
 
@@ -123,11 +125,12 @@ def unsupported_tracks(geometry, track: np.ndarray, rows: np.ndarray, cols: np.n
         track: (N,) track of every keypoint (-1: none).
         rows, cols, scores: (M,) the pairs the tracks were merged from, with their scores.
         threshold: the score an unsupported track needs.
+        min_expected: the views a track must be expected in to be judged.
 
     Returns:
         (T,) ids of the tracks to dissolve (empty: none).
     """
-    ids, first, counts = np.unique(track, return_index=True, return_counts=True)
+    ids, counts = np.unique(track, return_counts=True)
     two = ids[(ids >= 0) & (counts == 2)]
     if two.size == 0:
         return two
