@@ -98,9 +98,9 @@ class WindowGeometry:
             self.verified[a, b] = self.verified[b, a] = True
             self.planar[a, b] = self.planar[b, a] = model.planar
         #: (V, V) symmetric: both views are large enough for a model
-        self._checkable = ~(self.small[:, None] | self.small[None, :])
+        self.checkable = ~(self.small[:, None] | self.small[None, :])
         #: (V, V) symmetric: no trusted model although both views are large enough for one
-        self.unverified = ~self.verified & self._checkable
+        self.unverified = ~self.verified & self.checkable
         self._offsets = problem.view_offsets
 
     @property
@@ -112,7 +112,7 @@ class WindowGeometry:
         landmarks fragmented 1.11 -> 1.41 per point when such windows counted)."""
         if int((~self.small).sum()) < 3:
             return False
-        return bool(self.planar[np.triu(self._checkable, 1)].all())
+        return bool(self.planar[np.triu(self.checkable, 1)].all())
 
     def unverified_pairs(self) -> List[ViewPair]:
         """View pairs (a, b), a < b, without a trusted model whose views are large enough to have one."""

@@ -121,9 +121,9 @@ def _placements(geometry, track: np.ndarray, x: np.ndarray, t: np.ndarray) -> np
     k = np.repeat(np.arange(x.size), n)
     other = by_track[first[t][k] + np.arange(k.size) - np.repeat(np.cumsum(n) - n, n)]
     apart = view[other] != view[x[k]]
-    k, other, xk = k[apart], other[apart], x[k[apart]]
-    below = view[xk] < view[other]
-    error, tolerance = _homography_errors(geometry, np.where(below, xk, other), np.where(below, other, xk))
+    k, other = k[apart], other[apart]
+    lo, hi, _, _ = geometry.in_view_order(x[k], other)
+    error, tolerance = _homography_errors(geometry, lo, hi)
     error[~(error <= tolerance)] = np.inf
     return np.bincount(k, weights=error, minlength=x.size)
 

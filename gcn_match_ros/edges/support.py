@@ -35,7 +35,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..geometry import homogeneous, transfer
 from ..view_pairs import by_view_pair
 
 if TYPE_CHECKING:  # consistency imports this module
@@ -49,19 +48,16 @@ MIN_EXPECTED = 2
 MIN_CROSSING_DEG = 5.0
 
 
-def _placed_in(geometry: "WindowGeometry", view: int, other: int, x: np.ndarray):
-    """What the model of (view, other) makes of keypoints ``x`` of ``view`` in ``other``:
-    ('point', (n, 2)) under a homography, ('line', (n, 3)) under F."""
+def _placed_in(transfers: dict, geometry: "WindowGeometry", view: int, other: int, x: np.ndarray):
+    """What the model of (view, other) makes of keypoints ``x`` (indices) of ``view`` in ``other``:
+    ('point', (n, 2)) under a homography, ('line', (n, 3)) under F
+    (:meth:`.consistency.WindowGeometry.transfers`, computed once per view pair into ``transfers``)."""
     a, b = min(view, other), max(view, other)
-    model = geometry.models[(a, b)]
-    if model.planar:
-        try:
-            H = model.H if view == a else np.linalg.inv(model.H)
-        except np.linalg.LinAlgError:  # places nothing (as WindowGeometry.transfers)
-            return "point", np.full_like(x, np.nan)
-        return "point", transfer(H, x)
-    h = homogeneous(x)
-    return "line", (h @ model.F.T if view == a else h @ model.F)
+    if (a, b) not in transfers:
+        transfers[a, b] = geometry.transfers(a, b)
+    fwd, bwd, planar, _ = transfers[a, b]
+    mapped = (fwd if view == a else bwd)[x - geometry.problem.view_offsets[view]]
+    return ("point", mapped[:, :2]) if planar else ("line", mapped)
 
 
 def _crossings(la: np.ndarray, lb: np.ndarray) -> np.ndarray:
@@ -100,14 +96,14 @@ def expected_views(geometry: "WindowGeometry", rows: np.ndarray, cols: np.ndarra
     """
     rows, cols, va, vb = geometry.in_view_order(rows, cols)
     count = np.zeros(rows.shape[0], np.int64)
-    verified = geometry.verified & ~(geometry.small[:, None] | geometry.small[None, :])
+    verified = geometry.verified & geometry.checkable
+    transfers: dict = {}
     for (i, j), m in by_view_pair(va, vb).items():
-        xa, xb = geometry.keypoints[rows[m]], geometry.keypoints[cols[m]]
         for k in np.flatnonzero(verified[i] & verified[j]).tolist():
             if k in (i, j):
                 continue
-            kind_a, pa = _placed_in(geometry, i, k, xa)
-            kind_b, pb = _placed_in(geometry, j, k, xb)
+            kind_a, pa = _placed_in(transfers, geometry, i, k, rows[m])
+            kind_b, pb = _placed_in(transfers, geometry, j, k, cols[m])
             x = pa if kind_a == "point" else pb if kind_b == "point" else _crossings(pa, pb)
             x0, y0, x1, y1 = _bounds(geometry, k)
             with np.errstate(invalid="ignore"):
