@@ -46,16 +46,21 @@ def edge_probabilities(model: torch.nn.Module, embeddings: torch.Tensor, edges: 
     busy once the first half is done. The halves meet at a multiple of the head's own chunk
     (:data:`gcn_match_ros.learn.model.EDGE_CHUNK`): the same chunks, so the same bits, as one pass.
 
-    Shapes: embeddings (N, d) on the model's device, edges with M candidates -> (M,) float32.
+    On a GPU the head runs in one pass: its kernels queue on one stream, a second thread would
+    add nothing.
+
+    Shapes: embeddings (N, d) on any device, edges with M candidates -> (M,) float32 (host).
     """
-    rows, cols, features = (torch.from_numpy(a) for a in (edges.rows, edges.cols, edges.features))
+    device = next(model.parameters()).device
+    embeddings = embeddings.to(device)
+    rows, cols, features = (torch.from_numpy(a).to(device) for a in (edges.rows, edges.cols, edges.features))
     m = rows.shape[0]
 
     def logits(lo: int, hi: int) -> torch.Tensor:
         with one_torch_thread(), torch.no_grad():
             return model.score_edges(embeddings, rows[lo:hi], cols[lo:hi], features[lo:hi])
 
-    if not parallel or m < SPLIT_EDGES:
+    if not parallel or m < SPLIT_EDGES or device.type != "cpu":
         out = logits(0, m)
     else:
         half = max(1, round(m / (2 * EDGE_CHUNK))) * EDGE_CHUNK
