@@ -60,10 +60,11 @@ def permuted_views_problem(n_views: int = 3, n_points: int = 12, dim: int = 16, 
                    gt_track=np.concatenate(gt), name="permuted")
 
 
-def look_at(centre: np.ndarray, target: np.ndarray) -> tuple:
-    """World->camera R, t for a camera at ``centre`` looking at ``target`` (y down)."""
+def look_at(centre: np.ndarray, target: np.ndarray, down=(0.0, 0.0, -1.0)) -> tuple:
+    """World->camera R, t for a camera at ``centre`` looking at ``target`` (y down, along the
+    world's ``down``: -z by default)."""
     z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross([0.0, 0.0, -1.0], z)
+    x = np.cross(np.asarray(down, np.float64), z)
     x /= np.linalg.norm(x)
     R = np.stack([x, np.cross(z, x), z])
     return R, -R @ centre

@@ -2,6 +2,7 @@
 true cameras."""
 import numpy as np
 import pytest
+from conftest import look_at
 
 from gcn_match_ros.edges.consistency import WindowGeometry, verified_tracks
 from gcn_match_ros.edges.support import MIN_EXPECTED, expected_views, unsupported_tracks
@@ -13,18 +14,9 @@ K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
 SIZE = (640, 480)
 
 
-def _looking_at_origin(center):
-    """World -> camera R, t of a camera at ``center`` looking at the origin (y down)."""
-    z = -center / np.linalg.norm(center)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ center
-
-
 def _cameras(n=4):
     """n cameras around a circle in front of the origin (no three centres on a line)."""
-    poses = [_looking_at_origin(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), -6.0]))
+    poses = [look_at(np.array([2.0 * np.cos(a), 2.0 * np.sin(a), -6.0]), np.zeros(3), down=(0.0, 1.0, 0.0))
              for a in np.radians(90.0 * np.arange(n))]
     return np.array([R for R, _ in poses]), np.array([t for _, t in poses])
 

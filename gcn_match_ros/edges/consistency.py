@@ -355,7 +355,7 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     merge_at = threshold
     if one_plane and planar_threshold is not None:
         # pairs with a view too small for a model are kept as scored, not checked point to point
-        unchecked = geometry.small[geometry.view_index[rows]] | geometry.small[geometry.view_index[cols]]
+        unchecked = ~geometry.checkable[geometry.view_index[rows], geometry.view_index[cols]]
         merge_at = np.where(unchecked, threshold, planar_threshold)
     merged = keep & (scores >= merge_at)
     if neighbours:
