@@ -303,13 +303,14 @@ def test_candidates_beside_the_network_change_nothing(one_torch_thread):
 
 
 @pytest.mark.parametrize("spec, slow, on_second_thread", [
-    ("gcn", "network", True), ("gcn", "candidates", False), ("gcn:parallel=false", None, False), ("nn", None, True)])
+    ("gcn", "network", True), ("gcn", "candidates", True), ("gcn:parallel=false", None, False), ("nn", None, True)])
 def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_idle(monkeypatch, spec, slow,
                                                                                   on_second_thread):
     """``Solver.solve(beside=...)``: gcn queues it behind its candidate edges on the second thread
-    and takes it back when they outlast the network (it would hold up the edge head; it then runs
-    on the caller's thread after the solve); a solver with no work of its own there starts it
-    first; gcn on one thread leaves it to the caller. The solve's result is the same either way."""
+    and takes it back when they outlast the network (it would hold up the edge head), queuing it
+    again once the edge head is done (beside the verification); a solver with no work of its own
+    there starts it first; gcn on one thread leaves it to the caller. The solve's result is the
+    same either way."""
     import threading
     import time
 

@@ -324,9 +324,9 @@ class GCNSolver(Solver):
                 # Learned edge scorer over descriptor + geometry-guided candidates (pose-free).
                 # The caller's work has had the second thread while this one ran the network, or
                 # is taken back while that thread is still on the candidate edges: there it would
-                # hold up the edge head (a 4 x 500 window), after the solve it takes both threads.
-                if beside is not None:
-                    beside.withdraw()
+                # hold up the edge head (a 4 x 500 window). Taken back, it is queued again once
+                # the edge head is done, beside the verification and tracks (one thread's work).
+                withdrawn = beside is not None and beside.withdraw()
                 with stage("candidates"):
                     job.help()
                 with stage("waiting"):
@@ -336,6 +336,8 @@ class GCNSolver(Solver):
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es,
                                                                             parallel=self.config.parallel))
+                if withdrawn:
+                    beside.start()
         if self.config.descriptor_fallback and edges.geometry:
             with stage("candidates"):
                 soft = _with_descriptor_matches(problem, soft, similarity)
