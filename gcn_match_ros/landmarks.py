@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 from typing import Dict, Iterator, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
@@ -69,6 +70,11 @@ MOTION_MAX_ITERS = 200
 #: kept while it explained an absolute 0.8 drifted from the moving rig over windows and dropped
 #: right continuations (landmark_eval: 1.24 vs 0.71 id switches per 100 on 2 cameras, seed 10)
 MOTION_REUSE_DROP = 0.02
+#: ... or by more than this many standard errors of a share of that many pairs: a right model's
+#: share of ~90 continuations varies by ~0.02 from window to window, so at 0.02 alone half of the
+#: refined models of node_latency's moving 2 x 250 rig were re-fitted (52 of its 60 fits in 118
+#: windows; with 2 standard errors 32 fits, landmark_eval's ids within +-0.02 on every metric)
+MOTION_REUSE_SIGMAS = 2.0
 #: motion models are remembered for frames up to this many windows apart (a landmark re-found
 #: after a gap is checked on the motion since its last sighting, which a steady rig repeats too)
 MOTION_MEMORY_WINDOWS = 8
@@ -274,7 +280,7 @@ class LandmarkTracker:
         untrusted, four a window); every continuation is still checked against the models.
         The frames of a camera pair as many windows apart as a frame pair of last window (up to
         ``MOTION_MEMORY_WINDOWS``) re-check that pair's model first; when it explains a share of
-        the pairs more than ``MOTION_REUSE_DROP`` below its share when fitted, it is refined by
+        the pairs more than :func:`_reuse_drop` below its share when fitted, it is refined by
         least squares on the pairs it still explains, and re-fitted only when that falls short
         too, as the rig memory does for camera pairs: a rig moving steadily is not re-fitted
         every window.
@@ -348,7 +354,7 @@ class LandmarkTracker:
             # and the bridge pairs
             fitted_in_sel = pair_claimed[sel]
             checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge) if model is not None else None
-            enough = (fitted_share - MOTION_REUSE_DROP) * fa.shape[0]
+            enough = (fitted_share - _reuse_drop(fitted_share, fa.shape[0])) * fa.shape[0]
             if checks is not None and max(checks.support) < enough:
                 # least squares on the pairs it still explains first: a steady rig's motion drifts
                 # slowly, and a re-fit costs several times as much
@@ -584,6 +590,16 @@ def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
     won = np.zeros(best_lm.shape[0], bool)
     won[order[claims[np.unique(ranked[claims], return_index=True)[1]]]] = True
     return np.where(won, best_lm, -1)
+
+
+def _reuse_drop(share: float, n: int) -> float:
+    """How far below ``share`` (the share a remembered motion model explained when fitted) its
+    share of a new frame pair's n pairs may fall before it is refined or re-fitted:
+    ``MOTION_REUSE_DROP``, or ``MOTION_REUSE_SIGMAS`` standard errors of a share of n pairs
+    where that is more (the share of a model that is still right varies that much from window
+    to window)."""
+    p = (share * n + 1.0) / (n + 2.0)  # not 0 or 1: a share of 1.0 fitted on 90 pairs is not exact
+    return max(MOTION_REUSE_DROP, MOTION_REUSE_SIGMAS * math.sqrt(p * (1.0 - p) / n))
 
 
 def _median(x: np.ndarray) -> float:

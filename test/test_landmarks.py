@@ -504,3 +504,16 @@ def test_search_then_associate_is_update_and_takes_only_the_last_search():
     two.search(CAMS, offs, kp, desc, 3 * PERIOD)
     with pytest.raises(ValueError, match="last search"):
         two.associate(stale, track)
+
+
+def test_a_remembered_motion_may_lose_what_a_share_varies_by():
+    """The tolerance before a remembered motion is refined: MOTION_REUSE_DROP, or two standard
+    errors of a share of n pairs where that is more (a right model's share of ~90 continuations
+    varies by about 0.02 from window to window)."""
+    from gcn_match_ros.landmarks import MOTION_REUSE_DROP, _reuse_drop
+
+    assert _reuse_drop(1.0, 100_000) == MOTION_REUSE_DROP
+    p = (0.9 * 90 + 1) / 92
+    assert _reuse_drop(0.9, 90) == pytest.approx(2 * np.sqrt(p * (1 - p) / 90))  # 0.062
+    assert _reuse_drop(1.0, 90) > MOTION_REUSE_DROP  # a share of 1.0 on 90 pairs is not exact
+    assert _reuse_drop(0.9, 20) > _reuse_drop(0.9, 90) > _reuse_drop(0.9, 1000)
