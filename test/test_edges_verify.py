@@ -169,3 +169,15 @@ def test_fine_fit_sees_through_repetitions_a_coarse_fit_accepts():
     assert fine.agrees(xa[shifted], xb[shifted]).mean() < 0.1
     assert fine.agrees(xa[~shifted], xb[~shifted]).mean() > 0.9
     assert coarse.agrees(xa[shifted], xb[shifted]).mean() > 0.5
+
+
+def test_a_models_inverse_homography_is_computed_once_and_none_where_singular():
+    H = np.array([[2.0, 0.0, 5.0], [0.0, 2.0, -3.0], [0.0, 0.0, 1.0]])
+    model = PairModel(H=H, F=None, planar=True)
+    assert model.H_inverse is model.H_inverse
+    np.testing.assert_allclose(model.H_inverse @ H, np.eye(3), atol=1e-12)
+    singular = PairModel(H=np.array([[1.0, 2.0, 0.0], [2.0, 4.0, 0.0], [0.0, 0.0, 0.0]]), F=None, planar=True)
+    assert singular.H_inverse is None
+    rh, rf = residuals(singular, np.zeros((3, 2)), np.ones((3, 2)))
+    assert np.isinf(rh).all() and np.isinf(rf).all()  # no pair agrees with a singular H
+    assert PairModel(H=None, F=np.eye(3)).H_inverse is None

@@ -354,12 +354,12 @@ def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, p
     """Geometry-guided candidates: nearest keypoint to the H transfer (both directions) and
     the descriptor-best keypoint within ``px`` of the epipolar line (both directions)."""
     out_a, out_b = [], []
-    if model.H is not None:
+    if model.H_inverse is not None:
         # nearest keypoint to each transfer, within px (KD-trees: never an na x nb distance matrix)
         dist, j = cKDTree(xb).query(transfer(model.H, xa), distance_upper_bound=px)
         ok = dist < px
         out_a.append(np.flatnonzero(ok)); out_b.append(j[ok])
-        dist, i = cKDTree(xa).query(transfer(np.linalg.inv(model.H), xb), distance_upper_bound=px)
+        dist, i = cKDTree(xa).query(transfer(model.H_inverse, xb), distance_upper_bound=px)
         ok = dist < px
         out_a.append(i[ok]); out_b.append(np.flatnonzero(ok))
     if model.F is not None:

@@ -192,10 +192,10 @@ class WindowGeometry:
         xa = self.keypoints[self._offsets[a]:self._offsets[a + 1]]
         xb = self.keypoints[self._offsets[b]:self._offsets[b + 1]]
         if model.planar:
-            try:
-                fwd, bwd = transfer(model.H, xa), transfer(np.linalg.inv(model.H), xb)
-            except np.linalg.LinAlgError:  # no pair agrees with a singular H (as verify.residuals)
+            if model.H_inverse is None:  # no pair agrees with a singular H (as verify.residuals)
                 fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
+            else:
+                fwd, bwd = transfer(model.H, xa), transfer(model.H_inverse, xb)
             return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, model.px
         return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
 

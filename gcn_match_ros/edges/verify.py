@@ -28,6 +28,7 @@ trusted models guide candidates, give geometric features and check tracks
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional, Tuple
 
 import cv2
@@ -113,6 +114,17 @@ class PairModel:
         """This model with only the selected H or F kept."""
         keep_h, keep_f = (self.H, None) if self.planar else (None, self.F)
         return dataclasses.replace(self, H=keep_h, F=keep_f)
+
+    @functools.cached_property
+    def H_inverse(self) -> Optional[np.ndarray]:
+        """H⁻¹ (3, 3), computed once per model (a window's checks transfer through it hundreds of
+        times); None without H or where H is singular (no pair agrees with it then)."""
+        if self.H is None:
+            return None
+        try:
+            return np.linalg.inv(self.H)
+        except np.linalg.LinAlgError:
+            return None
 
     @property
     def inlier_share(self) -> float:
@@ -263,13 +275,8 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
 
     Shapes: xa, xb (M, 2) -> (M,) float64 twice.
     """
-    H, F = model.H, model.F
-    Hi = None
-    if H is not None:
-        try:
-            Hi = np.linalg.inv(H)
-        except np.linalg.LinAlgError:
-            H = None
+    F, Hi = model.F, model.H_inverse
+    H = None if Hi is None else model.H
     missing = np.zeros((3, 3))
     return _residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
                       missing if H is None else np.asarray(H, np.float64), missing if Hi is None else Hi,
