@@ -19,11 +19,12 @@ from __future__ import annotations
 import dataclasses
 from typing import Dict, Optional
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
 from .configs import JsonConfig
-from .descriptors import NORMALIZATIONS, cosine_distance
+from .descriptors import NORMALIZATIONS
 from .problem import Problem
 from .similarity import DescriptorSimilarity
 
@@ -142,27 +143,92 @@ class CorrespondenceGraph:
         return self.rows[keep], self.cols[keep], keep
 
 
-def _directed_candidates(best: np.ndarray, idx: np.ndarray, k: int, row_offset: int, col_offset: int):
-    """Candidate edges from every row of a similarity block to its top-k columns.
+@numba.njit(cache=True, nogil=True)
+def _directed_candidates(best, idx, k, row_offset, col_offset, rows, cols, cosine, ratio, rank, at):
+    """Write the candidate edges from every row of a similarity block to its top-k columns into
+    the output arrays from position ``at``; returns the position after them.
 
     Args:
         best, idx: (n_rows, >= min(k, n_cols)) the row's largest similarities and their columns,
             best first (:func:`gcn_match_ros.similarity.most_similar`); a second column, where
             the block has one, gives the ratio test (else ratio 1).
 
-    Returns (rows, cols, cosine, ratio, rank), each of length n_rows * min(k, n_cols).
+    Ratio = cosine distance to this neighbour / to the second best (``descriptors.cosine_distance``,
+    in float32 as numpy computes it), at most 1.
     """
     n_rows = idx.shape[0]
-    second = best[:, 1] if best.shape[1] >= 2 else np.full(n_rows, -1.0, np.float32)
     kk = min(k, best.shape[1])
-    best, idx = best[:, :kk], idx[:, :kk]
-    ratio = np.where(second[:, None] > -1.0,
-                     cosine_distance(best) / np.maximum(cosine_distance(second)[:, None], 1e-12), 1.0)
-    return (np.repeat(np.arange(n_rows, dtype=np.int64) + row_offset, kk),
-            idx.ravel() + col_offset,
-            best.ravel().astype(np.float32),
-            np.minimum(ratio, 1.0).ravel().astype(np.float32),
-            np.tile(np.arange(kk, dtype=np.int64), n_rows))
+    two, zero, tiny, one = np.float32(2.0), np.float32(0.0), np.float32(1e-12), np.float32(1.0)
+    for r in range(n_rows):
+        has_second = best.shape[1] >= 2 and best[r, 1] > -1.0
+        second = np.sqrt(max(two - two * best[r, 1], zero)) if has_second else one
+        for c in range(kk):
+            value = best[r, c]
+            q = one
+            if has_second:
+                q = min(np.sqrt(max(two - two * value, zero)) / max(second, tiny), one)
+            rows[at], cols[at] = r + row_offset, idx[r, c] + col_offset
+            cosine[at], ratio[at], rank[at] = value, q, c
+            at += 1
+    return at
+
+
+@numba.njit(cache=True, nogil=True)
+def _merged_both_ways(n, rows, cols, cosine, ratio, rank):
+    """The directed candidates (rows[m] -> cols[m]) as the graph's entries: every pair once in
+    each direction, sorted by (row, col); a pair proposed from both ends is one entry per
+    direction with the lower ratio and rank and the count of its proposals (1 or 2). The cosine
+    is the same from both ends. A counting sort by row, then each row's few entries by column.
+
+    Shapes: (M,) each -> rows, cols (E,) int64, cosine, ratio (E,) float32, rank, count (E,) int64.
+    """
+    m = rows.shape[0]
+    start = np.zeros(n + 1, np.int64)
+    for e in range(m):
+        start[rows[e] + 1] += 1
+        start[cols[e] + 1] += 1
+    for v in range(n):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    other = np.empty(2 * m, np.int64)
+    entry = np.empty(2 * m, np.int64)  # the proposal each slot came from
+    for e in range(m):
+        a, b = rows[e], cols[e]
+        other[fill[a]], entry[fill[a]] = b, e
+        fill[a] += 1
+        other[fill[b]], entry[fill[b]] = a, e
+        fill[b] += 1
+    out_rows = np.empty(2 * m, np.int64)
+    out_cols = np.empty(2 * m, np.int64)
+    out_cos = np.empty(2 * m, np.float32)
+    out_ratio = np.empty(2 * m, np.float32)
+    out_rank = np.empty(2 * m, np.int64)
+    out_count = np.empty(2 * m, np.int64)
+    size = 0
+    for v in range(n):
+        lo, hi = start[v], start[v + 1]
+        for s in range(lo + 1, hi):  # insertion sort by column: a row holds a few dozen slots
+            o, e = other[s], entry[s]
+            t = s
+            while t > lo and other[t - 1] > o:
+                other[t], entry[t] = other[t - 1], entry[t - 1]
+                t -= 1
+            other[t], entry[t] = o, e
+        s = lo
+        while s < hi:
+            e = entry[s]
+            out_rows[size], out_cols[size] = v, other[s]
+            out_cos[size], out_ratio[size], out_rank[size], out_count[size] = cosine[e], ratio[e], rank[e], 1
+            s += 1
+            while s < hi and other[s] == other[s - 1]:
+                e = entry[s]
+                out_ratio[size] = min(out_ratio[size], ratio[e])
+                out_rank[size] = min(out_rank[size], rank[e])
+                out_count[size] += 1
+                s += 1
+            size += 1
+    return (out_rows[:size], out_cols[:size], out_cos[:size], out_ratio[:size], out_rank[:size],
+            out_count[:size])
 
 
 def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
@@ -179,7 +245,7 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
     sizes = problem.view_sizes
     V = problem.n_views
     n = problem.n_keypoints
-    parts = []
+    blocks = []
     sim_lo, sim_hi = np.inf, -np.inf
     for i in range(V):
         for j in range(i + 1, V):
@@ -188,53 +254,30 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
             sim = similarity.block(i, j, config.normalization).numpy()
             sim_lo, sim_hi = min(sim_lo, float(sim.min())), max(sim_hi, float(sim.max()))
             # k + 1 >= 2 best of each row and column: the candidates and the ratio test's second
-            best_r, idx_r, best_c, idx_c = similarity.most_similar(i, j, config.normalization,
-                                                                   min(max(config.k, 2), sim.shape[1]),
-                                                                   min(max(config.k, 2), sim.shape[0]))
-            parts.append(_directed_candidates(best_r, idx_r, config.k, offs[i], offs[j]))
-            parts.append(_directed_candidates(best_c, idx_c, config.k, offs[j], offs[i]))
-    if not parts:
-        empty_i, empty_f = np.zeros(0, np.int64), np.zeros(0, np.float32)
-        return CorrespondenceGraph(offs.copy(), empty_i, empty_i.copy(), empty_f, empty_f.copy(),
-                                   empty_f.copy(), empty_i.copy())
-    rows, cols, cos, rat, rnk = (np.concatenate(a) for a in zip(*parts))
+            blocks.append((i, j) + similarity.most_similar(i, j, config.normalization,
+                                                           min(max(config.k, 2), sim.shape[1]),
+                                                           min(max(config.k, 2), sim.shape[0])))
+    total = sum(best_r.shape[0] * min(config.k, best_r.shape[1]) + best_c.shape[0] * min(config.k, best_c.shape[1])
+                for _, _, best_r, _, best_c, _ in blocks)
+    rows, cols = np.empty(total, np.int64), np.empty(total, np.int64)
+    cos, rat, rnk = np.empty(total, np.float32), np.empty(total, np.float32), np.empty(total, np.int64)
+    at = 0
+    for i, j, best_r, idx_r, best_c, idx_c in blocks:
+        at = _directed_candidates(best_r, idx_r, config.k, offs[i], offs[j], rows, cols, cos, rat, rnk, at)
+        at = _directed_candidates(best_c, idx_c, config.k, offs[j], offs[i], rows, cols, cos, rat, rnk, at)
     if config.ratio is not None:
         keep = rat < config.ratio
         rows, cols, cos, rat, rnk = rows[keep], cols[keep], cos[keep], rat[keep], rnk[keep]
-
-    # Merge the two directions of a pair; `count` says how many ends proposed it.
-    # (a sort and reduceat: np.unique with inverse and counts and np.minimum.at took 4x longer;
-    # numpy's default sort, as the copies of a key carry the same cosine and are reduced by
-    # their minimum: a stable sort of 24 k keys took 1.9 ms, the default 0.4)
-    key = np.minimum(rows, cols) * n + np.maximum(rows, cols)
-    order = np.argsort(key)
-    key = key[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]]) if key.size else np.zeros(0, np.int64)
-    uniq = key[starts]
-    count = np.diff(np.r_[starts, key.size])
-    u_cos = cos[order][starts]  # the same value from both directions
-    u_rat = np.minimum.reduceat(rat[order], starts) if key.size else rat[:0]
-    u_rnk = np.minimum.reduceat(rnk[order], starts) if key.size else rnk[:0]
-    u_lo, u_hi = uniq // n, uniq % n
-
+    # every pair in both directions, sorted by (row, col); `count`: how many ends proposed it
+    rows, cols, cos, rat, rnk, count = _merged_both_ways(n, rows, cols, cos, rat, rnk)
     if config.rescale == "minmax":
-        w = (u_cos - sim_lo) / max(sim_hi - sim_lo, 1e-12)
+        w = (cos - sim_lo) / max(sim_hi - sim_lo, 1e-12)
     else:
-        w = u_cos
+        w = cos
     w = np.clip(w, 0.0, 1.0).astype(np.float32)
     keep = w >= config.min_similarity
     if config.mutual:
         keep &= count >= 2
     if config.binary:
         w = np.ones_like(w)
-    u_lo, u_hi, w, u_cos, u_rat, u_rnk = (a[keep] for a in (u_lo, u_hi, w, u_cos, u_rat, u_rnk))
-
-    rows = np.concatenate([u_lo, u_hi])
-    cols = np.concatenate([u_hi, u_lo])
-    order = np.argsort(rows * n + cols)  # unique keys: the (row, col) order (np.lexsort: 10x slower)
-
-    def both(a: np.ndarray) -> np.ndarray:
-        return np.concatenate([a, a])[order]
-
-    return CorrespondenceGraph(offs.copy(), rows[order], cols[order], both(w), both(u_cos),
-                               both(u_rat), both(u_rnk))
+    return CorrespondenceGraph(offs.copy(), rows[keep], cols[keep], w[keep], cos[keep], rat[keep], rnk[keep])

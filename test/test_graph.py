@@ -75,6 +75,21 @@ def test_empty_views_and_single_keypoints():
     assert build_graph(single).n_edges == 0
 
 
+def test_a_pair_proposed_from_both_ends_is_one_entry_each_way_with_the_lower_ratio_and_rank():
+    from gcn_match_ros.graph import _merged_both_ways
+
+    # proposals 0 -> 2 and 2 -> 0 (the same pair from both ends), 1 -> 2 from one end only
+    rows, cols, cos, ratio, rank, count = _merged_both_ways(
+        3, np.array([0, 2, 1]), np.array([2, 0, 2]), np.array([0.9, 0.9, 0.4], np.float32),
+        np.array([0.5, 0.3, 0.8], np.float32), np.array([0, 1, 2]))
+    assert list(zip(rows.tolist(), cols.tolist())) == [(0, 2), (1, 2), (2, 0), (2, 1)]  # (row, col) order
+    np.testing.assert_array_equal(count, [2, 1, 2, 1])
+    np.testing.assert_allclose(ratio, [0.3, 0.8, 0.3, 0.8])
+    np.testing.assert_array_equal(rank, [0, 2, 0, 2])
+    np.testing.assert_allclose(cos, [0.9, 0.4, 0.9, 0.4])
+    assert cos.dtype == ratio.dtype == np.float32 and rank.dtype == count.dtype == np.int64
+
+
 def test_edges_grow_linearly_not_quadratically():
     p = permuted_views_problem(n_views=4, n_points=400, noise=0.3, dim=32)
     g = build_graph(p, GraphConfig.paper(4))
