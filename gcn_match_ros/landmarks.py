@@ -49,6 +49,7 @@ import numpy as np
 
 from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, residuals, trusted_support
+from .rounding import track_members
 from .threads import alongside
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "WindowSearch", "PerCameraNNLinker"]
@@ -506,13 +507,10 @@ class _Units:
 
     def __init__(self, track: np.ndarray) -> None:
         track = np.asarray(track, np.int64)
-        order = np.argsort(track, kind="stable")
-        t = track[order]
-        lone = int(np.searchsorted(t, 0))           # keypoints in no track sort first
-        tracked = t[lone:]
-        starts = np.flatnonzero(np.r_[True, tracked[1:] != tracked[:-1]]) if tracked.size else tracked
-        self._members = np.concatenate([order[lone:], order[:lone]])
-        self._starts = np.r_[starts, tracked.size + np.arange(lone + 1)]   # (U + 1,)
+        tracked, starts = track_members(track)
+        lone = np.flatnonzero(track < 0)
+        self._members = np.concatenate([tracked, lone])
+        self._starts = np.r_[starts[:-1], tracked.size + np.arange(lone.size + 1)]   # (U + 1,)
         self.sizes = np.diff(self._starts)
         self.of_keypoint = np.empty(track.size, np.int64)
         self.of_keypoint[self._members] = np.repeat(np.arange(self.sizes.size), self.sizes)

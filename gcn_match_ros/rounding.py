@@ -19,7 +19,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["greedy_tracks", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs",
+__all__ = ["greedy_tracks", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs", "track_members",
            "is_cycle_consistent"]
 
 
@@ -141,20 +141,28 @@ def relabel_tracks(labels: np.ndarray) -> np.ndarray:
     return out
 
 
+def track_members(track: np.ndarray):
+    """The keypoints in tracks, track after track (ids ascending), each track's in keypoint
+    order, and where each track starts among them (ids without members are skipped).
+
+    Shapes: track (N,) int, -1 = none -> members (K,) int64, starts (T + 1,) int64 (T tracks).
+    """
+    track = np.asarray(track, np.int64)
+    tracked = np.flatnonzero(track >= 0)
+    members = tracked[np.argsort(track[tracked], kind="stable")]
+    t = track[members]
+    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]]) if t.size else np.zeros(0, np.int64)
+    return members, np.r_[starts, t.size]
+
+
 def tracks_to_pairs(track: np.ndarray):
     """All unordered pairs (rows < cols) of keypoints sharing a track id >= 0."""
-    track = np.asarray(track, np.int64)
-    idx = np.flatnonzero(track >= 0)
-    order = idx[np.argsort(track[idx], kind="stable")]
-    t = track[order]
-    starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])
-    ends = np.r_[starts[1:], t.size]
+    members, starts = track_members(track)
     r_list, c_list = [], []
-    for s, e in zip(starts, ends):
-        members = np.sort(order[s:e])
-        a, b = np.triu_indices(members.size, 1)
-        r_list.append(members[a])
-        c_list.append(members[b])
+    for s, e in zip(starts[:-1], starts[1:]):
+        a, b = np.triu_indices(e - s, 1)
+        r_list.append(members[s + a])
+        c_list.append(members[s + b])
     if not r_list:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(r_list), np.concatenate(c_list)

@@ -4,7 +4,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from gcn_match_ros.rounding import (MergeTest, estimate_universe_size, greedy_tracks, is_cycle_consistent,
-                                    relabel_tracks, tracks_to_pairs)
+                                    relabel_tracks, track_members, tracks_to_pairs)
 
 from conftest import (corrupted_pairs, graph_from_pairs, known_answer_problem as make_problem,
                       true_pair_list as true_pairs)
@@ -62,3 +62,11 @@ def test_estimate_universe_size_counts_points():
     # bounds: never below the largest view, never above max_rank
     assert estimate_universe_size(sp.csr_matrix((30, 30)), np.array([10, 10, 10])) == 30
     assert estimate_universe_size(sp.csr_matrix((30, 30)), np.array([10, 10, 10]), max_rank=12) == 12
+
+
+def test_track_members_groups_keypoints_by_track_in_keypoint_order():
+    members, starts = track_members(np.array([3, -1, 0, 3, 0, -1, 7]))
+    assert members.tolist() == [2, 4, 0, 3, 6]   # track 0, then 3, then 7; ids without members skipped
+    assert starts.tolist() == [0, 2, 4, 5]
+    members, starts = track_members(np.full(4, -1))
+    assert members.size == 0 and starts.tolist() == [0]

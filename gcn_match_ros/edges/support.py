@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..rounding import track_members
 from ..view_pairs import by_view_pair
 
 if TYPE_CHECKING:  # consistency imports this module
@@ -126,13 +127,12 @@ def unsupported_tracks(geometry: "WindowGeometry", track: np.ndarray, rows: np.n
     Returns:
         (T,) ids of the tracks to dissolve (empty: none).
     """
-    ids, counts = np.unique(track, return_counts=True)
-    two = ids[(ids >= 0) & (counts == 2)]
+    members, starts = track_members(track)
+    first = starts[:-1][np.diff(starts) == 2]
+    a, b = members[first], members[first + 1]  # a < b: members in keypoint order
+    two = np.asarray(track, np.int64)[a]
     if two.size == 0:
         return two
-    members = np.flatnonzero(np.isin(track, two))
-    members = members[np.argsort(track[members], kind="stable")].reshape(-1, 2)
-    a, b = members[:, 0], members[:, 1]
     n = track.shape[0]
     key = np.minimum(rows, cols) * n + np.maximum(rows, cols)
     if key.size == 0:
