@@ -152,9 +152,11 @@ def _directed_candidates(best, idx, k, row_offset, col_offset, rows, cols, cosin
         best, idx: (n_rows, >= min(k, n_cols)) the row's largest similarities and their columns,
             best first (:func:`gcn_match_ros.similarity.most_similar`); a second column, where
             the block has one, gives the ratio test (else ratio 1).
-
-    Ratio = cosine distance to this neighbour / to the second best (``descriptors.cosine_distance``,
-    in float32 as numpy computes it), at most 1.
+        rows, cols (int64), cosine, ratio (float32), rank (int64): (M,) outputs, written at
+            ``at`` ... ``at + n_rows * min(k, best.shape[1])``: the row's keypoint, the column's,
+            their similarity, the ratio (cosine distance to this neighbour / to the second best,
+            ``descriptors.cosine_distance`` in float32 as numpy computes it, at most 1) and the
+            neighbour's rank in the row (0 = best).
     """
     n_rows = idx.shape[0]
     kk = min(k, best.shape[1])
@@ -207,7 +209,7 @@ def _merged_both_ways(n, rows, cols, cosine, ratio, rank):
     size = 0
     for v in range(n):
         lo, hi = start[v], start[v + 1]
-        for s in range(lo + 1, hi):  # insertion sort by column: a row holds a few dozen slots
+        for s in range(lo + 1, hi):  # insertion sort by column: a row holds at most 2 k (V - 1) slots
             o, e = other[s], entry[s]
             t = s
             while t > lo and other[t - 1] > o:
