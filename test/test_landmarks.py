@@ -269,13 +269,40 @@ def test_units_are_tracks_by_id_then_lone_keypoints():
     assert len(_Units(np.zeros(0, np.int64))) == 0 and len(_Units(np.full(3, -1))) == 3
 
 
-def test_unit_means_are_the_members_mean_descriptors():
-    from gcn_match_ros.landmarks import _unit_means
+def test_unit_summaries_are_the_unit_vectors_along_the_members_mean():
+    from gcn_match_ros.landmarks import _unit_summaries
 
     desc = np.random.default_rng(0).normal(size=(9, 4)).astype(np.float32)
-    rows, sizes = np.array([4, 0, 8, 2, 7, 5]), np.array([1, 3, 2])
-    expected = np.stack([desc[[4]].mean(0), desc[[0, 8, 2]].mean(0), desc[[7, 5]].mean(0)])
-    np.testing.assert_allclose(_unit_means(rows, sizes, desc), expected, rtol=1e-6)
+    desc[3] = 0.0
+    rows, sizes = np.array([4, 0, 8, 2, 7, 5, 3]), np.array([1, 3, 2, 1])
+    means = np.stack([desc[[4]].mean(0), desc[[0, 8, 2]].mean(0), desc[[7, 5]].mean(0)])
+    expected = means / np.linalg.norm(means, axis=1, keepdims=True)
+    got = _unit_summaries(rows, sizes, desc)
+    assert got.dtype == np.float32 and got.shape == (4, 4)
+    np.testing.assert_allclose(got[:3], expected, rtol=1e-6)
+    assert not got[3].any()   # a zero mean stays zero, no NaN
+
+
+def test_blended_summaries_move_towards_the_new_sighting_and_stay_unit_vectors():
+    from gcn_match_ros.landmarks import _blend_summaries
+
+    summaries = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    desc = np.array([[0, 2, 0], [0, 0, 4], [0, 0, 2]], np.float32)
+    # landmark 2 takes a unit of two members (mean (0, 0, 3)), landmark 0 one of one ((0, 2, 0))
+    _blend_summaries(summaries, np.array([2, 0]), np.array([1, 2, 0]), np.array([2, 1]), desc, 0.3)
+    np.testing.assert_allclose(summaries[2], [0, 0, 1], atol=1e-7)          # (0.7 + 0.9) / 1.6
+    np.testing.assert_allclose(summaries[0], np.array([0.7, 0.6, 0]) / np.hypot(0.7, 0.6), rtol=1e-6)
+    np.testing.assert_array_equal(summaries[1], [0, 1, 0])                  # not in js: untouched
+
+
+def test_one_to_one_gives_each_landmark_to_its_highest_scoring_unit_first_on_ties():
+    from gcn_match_ros.landmarks import _one_to_one
+
+    best = np.array([3, 3, 1, -1, 1, 3, 0])
+    score = np.array([0.5, 0.9, 0.7, 0.99, 0.7, 0.9, 0.1], np.float32)
+    assert _one_to_one(best, score).tolist() == [-1, 3, 1, -1, -1, -1, 0]
+    assert _one_to_one(np.zeros(0, np.int64), np.zeros(0)).size == 0
+    assert _one_to_one(np.full(3, -1), np.ones(3)).tolist() == [-1, -1, -1]
 
 
 def test_motion_checks_count_support_on_the_fitted_and_bridge_pairs_only():
