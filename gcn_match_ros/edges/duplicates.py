@@ -28,7 +28,7 @@ measured: both steps in every window (on tracks whose view pairs are all homogra
 ORB development windows of benchmarks/geometric_eval.py geometric precision (step 1: 0.929 ->
 0.922) and the generated rigs of benchmarks/landmark_eval.py their landmark ids (step 2: 4
 cameras, fragmentation 1.10 -> 1.17 per point), while on castle-P19's ORB windows step 2 helped
-(0.924 -> 0.928). Measured as adopted: README, "Near-duplicate keypoints and one-plane windows".
+(0.924 -> 0.928). Measured as adopted: docs/results.md, "One-plane windows and near-duplicate keypoints".
 """
 from __future__ import annotations
 
