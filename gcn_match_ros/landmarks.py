@@ -290,7 +290,7 @@ class LandmarkTracker:
         cannot tell apart on repetitive structure, the motion of the other points can.
         A landmark re-found after windows unseen was last seen in an older frame, which few
         other continuations share: too few pairs to fit that frame pair's motion. The
-        continuations from the last window bridge it (:meth:`_bridges`: their sighting before
+        continuations from the last window bridge it (:func:`_motion_pairs`: their sighting before
         the last one was in that frame), so the re-found ones are checked with a model fitted
         on their pairs and the bridges'. A continuation that nothing checks is dropped when it
         is a lone keypoint's or a re-finding after a gap (on the sample bags such re-findings
@@ -303,58 +303,41 @@ class LandmarkTracker:
             return best_lm
         sizes = units.sizes
         rows = units.members(cont)
-        unit_of_row = np.repeat(cont, sizes[cont])
-        row_column = column[rows]
-        last = self._xy[best_lm[unit_of_row]]                              # (R, cameras, 2)
-        pair_row, pair_cam = np.nonzero(~np.isnan(last[:, :, 0]))          # a pair per earlier sighting
-        xa, xb = last[pair_row, pair_cam], keypoints[rows[pair_row]].astype(np.float64)
-        # one motion per pair of frames: (last camera, its frame's time, current camera)
-        seen_ns = self._seen_ns[best_lm[unit_of_row]][pair_row]
-        # its rank among the rows (last camera, current camera, time) in lexicographic order, by one
-        # int64 key (np.unique over rows sorted them as structured records, 3 ms a window)
-        times, time_rank = np.unique(seen_ns, return_inverse=True)
-        n_cams = self._xy.shape[1]
-        _, key = np.unique((pair_cam * n_cams + row_column[pair_row]) * times.size + time_rank.ravel(),
-                           return_inverse=True)
-        key = key.ravel()
-        bridges = self._bridges(best_lm[unit_of_row], row_column, keypoints[rows], pair_cam, seen_ns)
+        (unit, xa, xb, fitted, moved, starts, ends, cam_a, cam_b, frame_ns, still, bridge_bounds, bridge_xa,
+         bridge_xb) = _motion_pairs(rows, np.repeat(cont, sizes[cont]), best_lm, claimed, column, keypoints,
+                                    self._xy, self._seen_ns, self._xy_before, self._before_ns,
+                                    self._previous_ns, MIN_SEEDS, RANSAC_PX)
         votes = np.zeros(sizes.size, np.int64)   # per unit: pairs that agree minus pairs that do not
         checked = np.zeros(sizes.size, np.int64)  # per unit: pairs under a trusted model
-        by_key = np.argsort(key, kind="stable")
-        bounds = np.r_[0, np.cumsum(np.bincount(key))].tolist()
-        groups = [by_key[a:b] for a, b in zip(bounds[:-1], bounds[1:])]   # pairs of each key, ascending
-        bridge_of = [bridges.get((int(pair_cam[g[0]]), int(row_column[pair_row[g[0]]]), int(seen_ns[g[0]])))
-                     for g in groups]
-        pair_claimed = claimed[unit_of_row[pair_row]]
-        fitted_on = [g[pair_claimed[g]] for g in groups]
-        sized = [f.size + (0 if b is None else b[0].shape[0]) >= MIN_SEEDS for f, b in zip(fitted_on, bridge_of)]
-        groups, fitted_on, bridge_of = ([a for a, ok in zip(x, sized) if ok] for x in (groups, fitted_on, bridge_of))
-        moved = np.linalg.norm(xb - xa, axis=1)
-        still = [bool(f.size and _median(moved[f]) <= RANSAC_PX) for f in fitted_on]
+        groups = [(g, slice(a, b)) for g, (a, b) in enumerate(zip(starts.tolist(), ends.tolist()))]
         # frame pairs whose image held still first (a standing robot; on the sample bags an image
         # seen again by the next camera): the identity is their model, exact and free, and F
         # would be degenerate there. Then fitted models, only where a continuation is still
         # unchecked: each fit costs about a millisecond.
-        for sel, on in [(g, f) for g, f, s in zip(groups, fitted_on, still) if s]:
-            if trusted_support(int((moved[on] <= RANSAC_PX).sum()), on.size):
-                np.add.at(votes, unit_of_row[pair_row[sel]], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
-                np.add.at(checked, unit_of_row[pair_row[sel]], 1)
-        for sel, on, bridge in [(g, f, b) for g, f, s, b in zip(groups, fitted_on, still, bridge_of) if not s]:
-            if checked[unit_of_row[pair_row[on]]].all():
+        for g, sel in groups:
+            if still[g] and trusted_support(int((moved[sel][fitted[sel]] <= RANSAC_PX).sum()), int(fitted[sel].sum())):
+                np.add.at(votes, unit[sel], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
+                np.add.at(checked, unit[sel], 1)
+        for g, sel in groups:
+            if still[g] or checked[unit[sel][fitted[sel]]].all():
                 continue
             # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
-            fa, fb = (xa[on], xb[on]) if bridge is None else (np.concatenate([xa[on], bridge[0]]),
-                                                              np.concatenate([xb[on], bridge[1]]))
+            bridge = None
+            if bridge_bounds[g + 1] > bridge_bounds[g]:
+                at = slice(bridge_bounds[g], bridge_bounds[g + 1])
+                bridge = bridge_xa[at], bridge_xb[at]
+            fitted_in_sel = fitted[sel]
+            fa, fb = xa[sel][fitted_in_sel], xb[sel][fitted_in_sel]
+            if bridge is not None:
+                fa, fb = np.concatenate([fa, bridge[0]]), np.concatenate([fb, bridge[1]])
             # a camera pair's frames the same number of windows apart as last window's: that
             # window's model first (a rig moving steadily moves alike window after window),
             # refined or re-fitted when it explains fewer pairs than when it was fitted
-            cams = (int(pair_cam[sel[0]]), int(row_column[pair_row[sel[0]]]))
-            back = self._windows_back(int(seen_ns[sel[0]]))
-            remembered_as = None if back is None else cams + (back,)
+            back = self._windows_back(int(frame_ns[g]))
+            remembered_as = None if back is None else (int(cam_a[g]), int(cam_b[g]), back)
             model, fitted_share = self._motion_models.get(remembered_as, (None, 0.0))
             # residuals once per model on the frame pair's pairs (the fitted ones are among them)
             # and the bridge pairs
-            fitted_in_sel = pair_claimed[sel]
             checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge) if model is not None else None
             enough = (fitted_share - _reuse_drop(fitted_share, fa.shape[0])) * fa.shape[0]
             if checks is not None and max(checks.support) < enough:
@@ -382,46 +365,11 @@ class LandmarkTracker:
             rh, rf = checks.residuals
             agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
                 (rf <= MOTION_SLACK * model.epipolar_px)
-            np.add.at(votes, unit_of_row[pair_row[sel]], np.where(agree, 1, -1))
-            np.add.at(checked, unit_of_row[pair_row[sel]], 1)
+            np.add.at(votes, unit[sel], np.where(agree, 1, -1))
+            np.add.at(checked, unit[sel], 1)
         gap = np.zeros(sizes.size, bool)
         gap[cont] = self._seen_ns[best_lm[cont]] != self._previous_ns
         return np.where((votes < 0) | ((checked == 0) & ((sizes == 1) | gap)), -1, best_lm)
-
-    def _bridges(self, row_lm, row_column, row_xy, pair_cam, seen_ns):
-        """Pairs that tie an earlier frame to this window for the continuations re-found after a
-        gap: a landmark last seen two or more windows ago was last seen in a frame that the
-        continuations from the last window saw at their sighting before it. Returns
-        (last camera, current camera, that frame's time) -> (xa (B, 2) then, xb (B, 2) now), for
-        the frames of re-found continuations only.
-
-        Shapes: row_lm, row_column (R,), row_xy (R, 2) per continuing keypoint; pair_cam, seen_ns
-        (P,) per pair of :meth:`_motion_checked`.
-        """
-        gap = seen_ns != self._previous_ns
-        if not gap.any():
-            return {}
-        consecutive = self._seen_ns[row_lm] == self._previous_ns
-        before = self._xy_before[row_lm]                                   # (R, cameras, 2)
-        b_row, b_cam = np.nonzero(consecutive[:, None] & ~np.isnan(before[:, :, 0]))
-        b_ns = self._before_ns[row_lm][b_row]
-        # (camera, frame time) as one int64 key: the times ranked among those of both sides
-        times, rank = np.unique(np.concatenate([seen_ns[gap], b_ns]), return_inverse=True)
-        rank = rank.ravel()
-        n_gap = int(gap.sum())
-        frame = b_cam * times.size + rank[n_gap:]
-        wanted = np.isin(frame, pair_cam[gap] * times.size + rank[:n_gap])
-        b_row, b_cam, b_ns = b_row[wanted], b_cam[wanted], b_ns[wanted]
-        column = row_column[b_row]
-        key = frame[wanted] * self._xy.shape[1] + column
-        order = np.argsort(key, kind="stable")   # each group's pairs in row order
-        out = {}
-        cuts = np.r_[0, np.flatnonzero(np.diff(key[order])) + 1, order.size].tolist()
-        for g in (order[a:b] for a, b in zip(cuts[:-1], cuts[1:])):
-            if g.size:
-                out[(int(b_cam[g[0]]), int(column[g[0]]), int(b_ns[g[0]]))] = (
-                    before[b_row[g], b_cam[g]], row_xy[b_row[g]].astype(np.float64))
-        return out
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:
@@ -477,6 +425,133 @@ class LandmarkTracker:
         self._next_id += k
         self.born += k
         return first
+
+
+@numba.njit(cache=True)
+def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, seen_ns, xy_before, before_ns,
+                  previous_ns, min_seeds, still_px):
+    """:meth:`LandmarkTracker._motion_checked`'s pairs and frame pairs, compiled (numpy and a
+    dict of bridges took ~1.5 ms a window at 2 x 500).
+
+    A pair per continuing keypoint (``rows`` (R,), its unit ``unit_of_row``) and earlier sighting
+    of its landmark (``best_lm`` of the unit) in a camera: (that sighting, the keypoint now).
+    Pairs are grouped by frame pair (camera then, camera now, time then), the groups in that
+    order, a group's pairs in row order then camera order. A frame pair older than the last window
+    takes its bridge pairs: the continuations from the last window (rows ascending) whose sighting
+    before the last one was in that frame, in that camera, with their keypoint in the same camera
+    now. Only frame pairs with at least ``min_seeds`` fitted pairs (those of ``claimed`` units)
+    and bridge pairs are kept; "still" where the median motion of their fitted pairs is at most
+    ``still_px``.
+
+    Shapes: xy, xy_before (L, cameras, 2) float64; seen_ns, before_ns (L,). Returns the sorted
+    pairs (P,): unit, xa, xb (P, 2) float64, fitted (bool), moved (|xb - xa|); per kept frame
+    pair (G,): start, end into the pairs, camera then, camera now, time then, still (bool); then
+    the bridge pairs of every kept frame pair one after another, ``bridge_bounds`` (G + 1,),
+    bridge_xa, bridge_xb (B, 2) float64.
+    """
+    n_cams = xy.shape[1]
+    n_pairs = 0
+    for r in range(rows.size):
+        lm = best_lm[unit_of_row[r]]
+        for c in range(n_cams):
+            if not np.isnan(xy[lm, c, 0]):
+                n_pairs += 1
+    pair_row = np.empty(n_pairs, np.int64)
+    pair_cam = np.empty(n_pairs, np.int64)
+    pair_ns = np.empty(n_pairs, np.int64)
+    p = 0
+    for r in range(rows.size):
+        lm = best_lm[unit_of_row[r]]
+        for c in range(n_cams):
+            if not np.isnan(xy[lm, c, 0]):
+                pair_row[p], pair_cam[p], pair_ns[p] = r, c, seen_ns[lm]
+                p += 1
+    # the frames' times, few: ranked by a scan, the pairs then put in key order by a counting sort
+    # (stable: row order, then camera order, within a group)
+    times = np.empty(0, np.int64)
+    for p in range(n_pairs):
+        if not (times == pair_ns[p]).any():
+            times = np.append(times, pair_ns[p])
+    times.sort()
+    key = (pair_cam * n_cams + column[rows[pair_row]]) * times.size + np.searchsorted(times, pair_ns)
+    count = np.zeros(n_cams * n_cams * times.size + 1, np.int64)
+    for p in range(n_pairs):
+        count[key[p] + 1] += 1
+    count = np.cumsum(count)
+    order = np.empty(n_pairs, np.int64)
+    for p in range(n_pairs):
+        order[count[key[p]]] = p
+        count[key[p]] += 1
+    unit = np.empty(n_pairs, np.int64)
+    xa = np.empty((n_pairs, 2))
+    xb = np.empty((n_pairs, 2))
+    fitted = np.empty(n_pairs, np.bool_)
+    moved = np.empty(n_pairs)
+    for i in range(n_pairs):
+        q = order[i]
+        r, c = pair_row[q], pair_cam[q]
+        unit[i] = unit_of_row[r]
+        xa[i, 0], xa[i, 1] = xy[best_lm[unit[i]], c, 0], xy[best_lm[unit[i]], c, 1]
+        xb[i, 0], xb[i, 1] = np.float64(keypoints[rows[r], 0]), np.float64(keypoints[rows[r], 1])
+        fitted[i] = claimed[unit[i]]
+        dx, dy = xb[i, 0] - xa[i, 0], xb[i, 1] - xa[i, 1]
+        moved[i] = np.sqrt(dx * dx + dy * dy)
+    # the frame pairs, kept where they have enough pairs to fit on
+    starts = np.empty(n_pairs, np.int64)
+    ends = np.empty(n_pairs, np.int64)
+    cam_a = np.empty(n_pairs, np.int64)
+    cam_b = np.empty(n_pairs, np.int64)
+    frame_ns = np.empty(n_pairs, np.int64)
+    still = np.empty(n_pairs, np.bool_)
+    bridge_bounds = np.zeros(n_pairs + 1, np.int64)
+    bridge_row = np.empty(0, np.int64)
+    n_groups = 0
+    i = 0
+    while i < n_pairs:
+        j = i + 1
+        while j < n_pairs and key[order[j]] == key[order[i]]:
+            j += 1
+        first = order[i]
+        ca, cb, t = pair_cam[first], column[rows[pair_row[first]]], pair_ns[first]
+        n_fit = 0
+        for k in range(i, j):
+            n_fit += fitted[k]
+        rows_of_bridge = np.empty(0, np.int64)
+        if t != previous_ns:
+            take = np.zeros(rows.size, np.bool_)
+            for r in range(rows.size):
+                lm = best_lm[unit_of_row[r]]
+                take[r] = (seen_ns[lm] == previous_ns and column[rows[r]] == cb and before_ns[lm] == t
+                           and not np.isnan(xy_before[lm, ca, 0]))
+            rows_of_bridge = np.flatnonzero(take)
+        if n_fit + rows_of_bridge.size >= min_seeds:
+            starts[n_groups], ends[n_groups] = i, j
+            cam_a[n_groups], cam_b[n_groups], frame_ns[n_groups] = ca, cb, t
+            if n_fit:
+                m = np.empty(n_fit)
+                f = 0
+                for k in range(i, j):
+                    if fitted[k]:
+                        m[f] = moved[k]
+                        f += 1
+                m.sort()
+                still[n_groups] = 0.5 * (m[(n_fit - 1) // 2] + m[n_fit // 2]) <= still_px
+            else:
+                still[n_groups] = False
+            bridge_row = np.concatenate((bridge_row, rows_of_bridge))
+            bridge_bounds[n_groups + 1] = bridge_row.size
+            n_groups += 1
+        i = j
+    bridge_xa = np.empty((bridge_row.size, 2))
+    bridge_xb = np.empty((bridge_row.size, 2))
+    for g in range(n_groups):
+        for k in range(bridge_bounds[g], bridge_bounds[g + 1]):
+            r = bridge_row[k]
+            lm = best_lm[unit_of_row[r]]
+            bridge_xa[k, 0], bridge_xa[k, 1] = xy_before[lm, cam_a[g], 0], xy_before[lm, cam_a[g], 1]
+            bridge_xb[k, 0], bridge_xb[k, 1] = np.float64(keypoints[rows[r], 0]), np.float64(keypoints[rows[r], 1])
+    return (unit, xa, xb, fitted, moved, starts[:n_groups], ends[:n_groups], cam_a[:n_groups], cam_b[:n_groups],
+            frame_ns[:n_groups], still[:n_groups], bridge_bounds[:n_groups + 1], bridge_xa, bridge_xb)
 
 
 @numba.njit(cache=True, inline="always")

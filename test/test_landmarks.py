@@ -305,6 +305,40 @@ def test_one_to_one_gives_each_landmark_to_its_highest_scoring_unit_first_on_tie
     assert _one_to_one(np.full(3, -1), np.ones(3)).tolist() == [-1, -1, -1]
 
 
+def test_motion_pairs_group_by_frame_pair_and_bridge_a_frame_seen_before_the_last_window():
+    from gcn_match_ros.landmarks import _motion_pairs
+
+    nan = np.nan
+    # 4 landmarks, 2 cameras; the last window was at t=100, landmark 2 was last seen at t=50
+    xy = np.array([[[10, 10], [nan, nan]], [[20, 20], [30, 30]], [[40, 40], [nan, nan]],
+                   [[nan, nan], [50, 50]]], float)
+    seen_ns = np.array([100, 100, 50, 100])
+    xy_before = np.full((4, 2, 2), nan)
+    xy_before[3, 0] = (5, 5)                       # landmark 3's sighting before: camera 0 at t=50
+    before_ns = np.array([-1, -1, -1, 50])
+    keypoints = np.array([[11, 10], [31, 30], [41, 40], [53, 50]], np.float32)
+    column = np.array([0, 1, 0, 0])                # each keypoint's camera now
+    units = np.arange(4)                           # one keypoint a unit, unit u continues landmark u
+    out = _motion_pairs(units, units, units, np.ones(4, bool), column, keypoints, xy, seen_ns, xy_before,
+                        before_ns, 100, 1, 2.0)
+    unit, xa, xb, fitted, moved, starts, ends, cam_a, cam_b, frame_ns, still, bridge_bounds, bxa, bxb = out
+    # frame pairs by (camera then, camera now, time then)
+    assert list(zip(cam_a, cam_b, frame_ns)) == [(0, 0, 50), (0, 0, 100), (0, 1, 100), (1, 0, 100), (1, 1, 100)]
+    assert [unit[a:b].tolist() for a, b in zip(starts, ends)] == [[2], [0], [1], [3], [1]]
+    np.testing.assert_array_equal(xa[starts[2]], [20, 20])
+    np.testing.assert_array_equal(xb[starts[2]], [31, 30])
+    np.testing.assert_allclose(moved[starts[1]], 1.0)
+    assert still.tolist() == [True, True, False, False, True]
+    # only the frame seen before the last window is bridged: by landmark 3, seen then in camera 0
+    assert bridge_bounds.tolist() == [0, 1, 1, 1, 1, 1]
+    np.testing.assert_array_equal(bxa, [[5, 5]])
+    np.testing.assert_array_equal(bxb, [[53, 50]])
+    # frame pairs with fewer fitted and bridge pairs than the seeds a fit needs are left out
+    out = _motion_pairs(units, units, units, np.ones(4, bool), column, keypoints, xy, seen_ns, xy_before,
+                        before_ns, 100, 2, 2.0)
+    assert list(zip(out[7], out[8], out[9])) == [(0, 0, 50)] and out[11].tolist() == [0, 1]
+
+
 def test_motion_checks_count_support_on_the_fitted_and_bridge_pairs_only():
     from gcn_match_ros.edges.verify import fit_pair, residuals
     from gcn_match_ros.landmarks import _MotionChecks
