@@ -360,6 +360,36 @@ def test_motion_checks_count_support_on_the_fitted_and_bridge_pairs_only():
     assert checks.support == (25 + int((bh <= model.px).sum()), 25 + int((bf <= model.epipolar_fit_px).sum()))
 
 
+def test_a_refinement_re_estimates_only_the_motion_the_check_uses():
+    """A motion with depth is checked with F: its refinement re-estimates F on F's inliers and
+    keeps H as it was; a planar motion re-estimates H and keeps F."""
+    import dataclasses
+
+    from gcn_match_ros.edges.verify import fit_pair
+    from gcn_match_ros.landmarks import _MotionChecks, _refined
+
+    rng = np.random.default_rng(2)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    X = rng.uniform([-2, -1.5, 4], [2, 1.5, 9], (80, 3))          # points at many depths
+    project = lambda X, t: (X + t) @ K.T / (X + t)[:, 2:]  # noqa: E731
+    xa, xb = project(X, np.zeros(3))[:, :2], project(X, np.array([0.3, 0.0, 0.0]))[:, :2]
+    fitted = np.ones(80, bool)
+    model = fit_pair(xa, xb)
+    checks = _MotionChecks(model, xa, xb, fitted, None)
+    assert checks.support[0] < 0.95 * checks.support[1]       # F explains clearly more: F is used
+    moved = dataclasses.replace(model, F=model.F + 1e-7 * rng.normal(size=(3, 3)))
+    refined = _refined(moved, _MotionChecks(moved, xa, xb, fitted, None), xa, xb)
+    assert refined.H is moved.H and not np.array_equal(refined.F, moved.F)
+    # a plane: every point at depth 5, H explains all pairs
+    X[:, 2] = 5.0
+    xa, xb = project(X, np.zeros(3))[:, :2], project(X, np.array([0.3, 0.0, 0.0]))[:, :2]
+    model = fit_pair(xa, xb)
+    checks = _MotionChecks(model, xa, xb, fitted, None)
+    assert checks.support[0] >= 0.95 * checks.support[1]
+    refined = _refined(model, checks, xa, xb)
+    assert refined.F is model.F and not np.array_equal(refined.H, model.H)
+
+
 def test_a_continuation_against_the_motion_of_the_others_is_refused():
     """Window 2 moves every point 6 px right; one point is gone and a look-alike (its descriptor)
     sits 25 px below where it should be: within the image gate, against the motion."""
