@@ -468,11 +468,18 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
                 p += 1
     # the frames' times, few: ranked by a scan, the pairs then put in key order by a counting sort
     # (stable: row order, then camera order, within a group)
-    times = np.empty(0, np.int64)
+    times = np.empty(n_pairs, np.int64)
+    n_times = 0
     for p in range(n_pairs):
-        if not (times == pair_ns[p]).any():
-            times = np.append(times, pair_ns[p])
-    times.sort()
+        known = False
+        for k in range(n_times):
+            if times[k] == pair_ns[p]:
+                known = True
+                break
+        if not known:
+            times[n_times] = pair_ns[p]
+            n_times += 1
+    times = np.sort(times[:n_times])
     key = (pair_cam * n_cams + column[rows[pair_row]]) * times.size + np.searchsorted(times, pair_ns)
     count = np.zeros(n_cams * n_cams * times.size + 1, np.int64)
     for p in range(n_pairs):
