@@ -523,14 +523,8 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
         n_fit = 0
         for k in range(i, j):
             n_fit += fitted[k]
-        rows_of_bridge = np.empty(0, np.int64)
-        if t != previous_ns:
-            take = np.zeros(rows.size, np.bool_)
-            for r in range(rows.size):
-                lm = best_lm[unit_of_row[r]]
-                take[r] = (seen_ns[lm] == previous_ns and column[rows[r]] == cb and before_ns[lm] == t
-                           and not np.isnan(xy_before[lm, ca, 0]))
-            rows_of_bridge = np.flatnonzero(take)
+        rows_of_bridge = _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before,
+                                      previous_ns, ca, cb, t)
         if n_fit + rows_of_bridge.size >= min_seeds:
             starts[n_groups], ends[n_groups] = i, j
             cam_a[n_groups], cam_b[n_groups], frame_ns[n_groups] = ca, cb, t
@@ -559,6 +553,23 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
             bridge_xb[k, 0], bridge_xb[k, 1] = np.float64(keypoints[rows[r], 0]), np.float64(keypoints[rows[r], 1])
     return (unit, xa, xb, fitted, moved, starts[:n_groups], ends[:n_groups], cam_a[:n_groups], cam_b[:n_groups],
             frame_ns[:n_groups], still[:n_groups], bridge_bounds[:n_groups + 1], bridge_xa, bridge_xb)
+
+
+@numba.njit(cache=True, inline="always")
+def _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before, previous_ns, cam_then,
+                 cam_now, t):
+    """The rows (ascending) that bridge frame pair (``cam_then`` at time ``t``, ``cam_now``) of
+    :func:`_motion_pairs`: continuations from the last window, their keypoint in ``cam_now``,
+    whose landmark's sighting before the last one was in ``cam_then`` at ``t``; none for a frame
+    of the last window itself."""
+    if t == previous_ns:
+        return np.empty(0, np.int64)
+    take = np.zeros(rows.size, np.bool_)
+    for r in range(rows.size):
+        lm = best_lm[unit_of_row[r]]
+        take[r] = (seen_ns[lm] == previous_ns and column[rows[r]] == cam_now and before_ns[lm] == t
+                   and not np.isnan(xy_before[lm, cam_then, 0]))
+    return np.flatnonzero(take)
 
 
 @numba.njit(cache=True, inline="always")
@@ -736,13 +747,6 @@ def _reuse_drop(share: float, n: int) -> float:
     to window)."""
     p = (share * n + 1.0) / (n + 2.0)  # not 0 or 1: a share of 1.0 fitted on 90 pairs is not exact
     return max(MOTION_REUSE_DROP, MOTION_REUSE_SIGMAS * math.sqrt(p * (1.0 - p) / n))
-
-
-def _median(x: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D array, without its per-call overhead (30 us)."""
-    n = x.size
-    middle = np.partition(x, [(n - 1) // 2, n // 2])
-    return 0.5 * (middle[(n - 1) // 2] + middle[n // 2])
 
 
 def _refined(model: PairModel, checks: "_MotionChecks", xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
