@@ -371,8 +371,11 @@ def test_a_refinement_re_estimates_only_the_motion_the_check_uses():
     rng = np.random.default_rng(2)
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
     X = rng.uniform([-2, -1.5, 4], [2, 1.5, 9], (80, 3))          # points at many depths
-    project = lambda X, t: (X + t) @ K.T / (X + t)[:, 2:]  # noqa: E731
-    xa, xb = project(X, np.zeros(3))[:, :2], project(X, np.array([0.3, 0.0, 0.0]))[:, :2]
+
+    def project(X, t):
+        return ((X + t) @ K.T / (X + t)[:, 2:])[:, :2]
+
+    xa, xb = project(X, np.zeros(3)), project(X, np.array([0.3, 0.0, 0.0]))
     fitted = np.ones(80, bool)
     model = fit_pair(xa, xb)
     checks = _MotionChecks(model, xa, xb, fitted, None)
@@ -382,7 +385,7 @@ def test_a_refinement_re_estimates_only_the_motion_the_check_uses():
     assert refined.H is moved.H and not np.array_equal(refined.F, moved.F)
     # a plane: every point at depth 5, H explains all pairs
     X[:, 2] = 5.0
-    xa, xb = project(X, np.zeros(3))[:, :2], project(X, np.array([0.3, 0.0, 0.0]))[:, :2]
+    xa, xb = project(X, np.zeros(3)), project(X, np.array([0.3, 0.0, 0.0]))
     model = fit_pair(xa, xb)
     checks = _MotionChecks(model, xa, xb, fitted, None)
     assert checks.support[0] >= 0.95 * checks.support[1]
