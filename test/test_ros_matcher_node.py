@@ -543,3 +543,26 @@ def test_matcher_process_sigterm_clean_exit():
         out = proc.communicate(timeout=10)[0]
     assert rc == 0, out
     assert "Traceback" not in out, out
+
+
+def test_the_warm_up_runs_the_one_plane_paths_too(monkeypatch):
+    """The warm-up's planar window takes the paths of a window of one plane (near-duplicates
+    ranked by the homographies), which its 3-D window never reaches: a fresh install would
+    otherwise compile them on its first real planar window."""
+    from gcn_match_ros import solvers
+    from gcn_match_ros.edges import duplicates
+    from gcn_match_ros.ros.matcher_node import _warmup_problem
+
+    calls = []
+    ranked = duplicates._raise_better_placed
+
+    def counting(*args):
+        calls.append(1)
+        return ranked(*args)
+
+    monkeypatch.setattr(duplicates, "_raise_better_placed", counting)
+    solver = solvers.create("gcn")
+    solver.solve(_warmup_problem(128))
+    assert not calls
+    solver.solve(_warmup_problem(128, planar=True))
+    assert calls

@@ -35,6 +35,7 @@ Run::
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import sys
 import threading
 import time
@@ -103,11 +104,15 @@ def create_solver(spec: str, checkpoint: str = "", device: str = "cpu") -> solve
                            + f": {type(exc).__name__}: {exc}") from None
 
 
-def _warmup_problem(dim: int, binary: bool = False) -> Problem:
+def _warmup_problem(dim: int, binary: bool = False, planar: bool = False) -> Problem:
     """Three views of a small synthetic 3-D scene (:func:`gcn_match_ros.data.synthetic.easy`:
     every view pair has a trusted non-planar model, so the geometric paths run), with ``dim``
-    descriptors of the kind to warm up (binary: 0/1 bits)."""
+    descriptors of the kind to warm up (binary: 0/1 bits); ``planar``: every point at one depth
+    in front of a forward-moving camera, a window of one plane (its own compiled paths: one-plane
+    windows, near-duplicates placed by the homographies)."""
     config = synthetic.easy(3, descriptor_kind="binary" if binary else "sift", descriptor_dim=dim, n_points=60)
+    if planar:
+        config = config.replace(layout="forward", depth_range=(5.0, 5.0))
     return synthetic.random_scene_problem(config, rng=0)
 
 
@@ -247,14 +252,16 @@ class _Matcher:
         return dim or (self._solver_dims[0] if len(self._solver_dims) == 1 else 0)
 
     def _warm_up(self, dim: int) -> str:
-        """Two windows of a small stream, on a throwaway stream state: first-call costs (model
-        loads, compiled loops where numba cannot cache them) leave the first real windows, and
-        a solver that cannot run at all is found at start-up."""
+        """Two windows of a small stream of a 3-D scene and two of a plane, each on a throwaway
+        stream state: first-call costs (model loads, compiled loops where numba cannot cache
+        them or has not yet: a fresh install compiled the one-plane paths on its first Oxford
+        window, ~0.6 s) leave the first real windows, and a solver that cannot run at all is
+        found at start-up."""
         t = time.perf_counter()
         kinds = [k for k in self._solver_kinds if not dim or k[0] == dim] or [(dim or 128, False)]
-        for d, binary in kinds:  # every model loads at start-up
+        for (d, binary), planar in itertools.product(kinds, (False, True)):  # every model loads at start-up
             try:
-                problem, state = _warmup_problem(d, binary), StreamState()
+                problem, state = _warmup_problem(d, binary, planar), StreamState()
                 problem.camera_ids = tuple(f"warm-up{v}" for v in range(problem.n_views))
                 for k in range(2):  # the second window also associates landmarks
                     solve_window(self._solver, problem, state, k * 100_000_000)
