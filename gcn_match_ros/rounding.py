@@ -19,7 +19,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["greedy_tracks", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs", "track_members",
+__all__ = ["greedy_tracks", "compile_plain_merge", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs", "track_members",
            "is_cycle_consistent"]
 
 
@@ -65,6 +65,15 @@ def greedy_tracks(n_nodes: int, view_index: np.ndarray, rows: np.ndarray, cols: 
                             np.asarray(cols, np.int64)[order], int(view_index.max()) + 1 if view_index.size else 1,
                             test.test, test.data)
     return relabel_tracks(roots)
+
+
+def compile_plain_merge() -> None:
+    """Compile :func:`greedy_tracks` without a further test now, not on the first window that
+    needs it (chained models of an unverified view pair, the rounding of a method without its
+    own): numba cannot cache :func:`_merge_greedily`, which takes a function, and compiling it
+    took 0.5-1.5 s of that window (an ORB bag's fourth window in the demo). The matcher node's
+    warm-up calls this."""
+    greedy_tracks(2, np.array([0, 1]), np.array([0]), np.array([1]), np.array([1.0]))
 
 
 @numba.njit

@@ -70,3 +70,12 @@ def test_track_members_groups_keypoints_by_track_in_keypoint_order():
     assert starts.tolist() == [0, 2, 4, 5]
     members, starts = track_members(np.full(4, -1))
     assert members.size == 0 and starts.tolist() == [0]
+
+
+def test_the_plain_merge_can_be_compiled_ahead_of_the_first_window():
+    """numba cannot cache the merge loop (it takes the merge test as an argument): the node's
+    warm-up compiles the plain one, so a window that needs it first does not pay for it."""
+    from gcn_match_ros.rounding import _merge_greedily, compile_plain_merge
+
+    compile_plain_merge()
+    assert any("_accept_every_merge" in str(sig) for sig in _merge_greedily.signatures)

@@ -57,6 +57,7 @@ from ..data import synthetic
 from ..descriptors import describe_descriptor_kind
 from ..load_shedding import KeypointBudget
 from ..problem import Problem
+from ..rounding import compile_plain_merge
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
 from ..threads import single_blas_thread
@@ -255,8 +256,8 @@ class _Matcher:
         """Two windows of a small stream of a 3-D scene and two of a plane, each on a throwaway
         stream state: first-call costs (model loads, compiled loops where numba cannot cache
         them or has not yet: a fresh install compiled the one-plane paths on its first Oxford
-        window, ~0.6 s) leave the first real windows, and a solver that cannot run at all is
-        found at start-up."""
+        window, ~0.6 s; the plain greedy merge, :func:`gcn_match_ros.rounding.compile_plain_merge`)
+        leave the first real windows, and a solver that cannot run at all is found at start-up."""
         t = time.perf_counter()
         kinds = [k for k in self._solver_kinds if not dim or k[0] == dim] or [(dim or 128, False)]
         for (d, binary), planar in itertools.product(kinds, (False, True)):  # every model loads at start-up
@@ -268,6 +269,7 @@ class _Matcher:
             except Exception as exc:
                 raise StartupError(f"solver {self._method} fails on a {d}-D warm-up window: "
                                    f"{type(exc).__name__}: {exc}") from None
+        compile_plain_merge()
         return f"warm-up {1e3 * (time.perf_counter() - t):.0f} ms"
 
     def _on_set_parameters(self, params) -> SetParametersResult:
