@@ -354,17 +354,12 @@ class LandmarkTracker:
                     continue
                 checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge)
                 fitted_share = max(checks.support) / fa.shape[0]
-            inliers_h, inliers_f = checks.support
-            if not trusted_support(max(inliers_h, inliers_f), fa.shape[0]):
+            if not trusted_support(max(checks.support), fa.shape[0]):
                 continue
             if remembered_as is not None:
                 self._motion_models[remembered_as] = (model, fitted_share)
-            # H unless F explains clearly more pairs, counted by the residuals the check uses: a
-            # small rig motion makes H almost as good as F by the estimators' counts, yet near
-            # points move off it by tens of pixels; on a plane F is degenerate and absorbs outliers
             rh, rf = checks.residuals
-            agree = (rh <= MOTION_SLACK * model.px) if inliers_h >= MOTION_PLANAR_RATIO * inliers_f else \
-                (rf <= MOTION_SLACK * model.epipolar_px)
+            agree = (rh <= MOTION_SLACK * model.px) if checks.uses_h else (rf <= MOTION_SLACK * model.epipolar_px)
             np.add.at(votes, unit[sel], np.where(agree, 1, -1))
             np.add.at(checked, unit[sel], 1)
         gap = np.zeros(sizes.size, bool)
@@ -730,7 +725,7 @@ def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
     out = np.full(best_lm.size, -1, np.int64)
     if best_lm.size == 0:
         return out
-    taken = np.zeros(max(best_lm.max(), -1) + 1, np.bool_)
+    taken = np.zeros(best_lm.max() + 1, np.bool_)
     for u in np.argsort(-score, kind="mergesort"):   # stable: the first unit on ties
         lm = best_lm[u]
         if lm >= 0 and not taken[lm]:
@@ -750,13 +745,13 @@ def _reuse_drop(share: float, n: int) -> float:
 
 
 def _refined(model: PairModel, checks: "_MotionChecks", xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
-    """``model`` with the motion its check uses (H where H explains at least MOTION_PLANAR_RATIO
-    of F's pairs, else F) re-estimated by least squares (DLT, normalised 8-point) on the pairs it
-    was fitted on, xa <-> xb (M, 2), that ``checks`` found within its fit threshold; the other
-    motion is kept as it was (the check chooses between them again on the new counts; H's DLT
-    with OpenCV's refinement costs 0.3 ms, and a moving rig's check mostly uses F). None when the
-    model lacks that motion, when it has fewer than MIN_SEEDS such pairs, or when the fit fails."""
-    planar = checks.support[0] >= MOTION_PLANAR_RATIO * checks.support[1]
+    """``model`` with the motion its check uses (:attr:`_MotionChecks.uses_h`) re-estimated by
+    least squares (DLT, normalised 8-point) on the pairs it was fitted on, xa <-> xb (M, 2), that
+    ``checks`` found within its fit threshold; the other motion is kept as it was (the check
+    chooses between them again on the new counts; H's DLT with OpenCV's refinement costs 0.3 ms,
+    and a moving rig's check mostly uses F). None when the model lacks that motion, when it has
+    fewer than MIN_SEEDS such pairs, or when the fit fails."""
+    planar = checks.uses_h
     on = checks.inliers[0] if planar else checks.inliers[1]
     if (model.H if planar else model.F) is None or on.sum() < MIN_SEEDS:
         return None
@@ -779,7 +774,11 @@ class _MotionChecks:
     Attributes:
         residuals: (H's, F's) (M,) each (:func:`gcn_match_ros.edges.verify.residuals`);
         inliers: (within H's threshold, within F's) (F,) bool each, of the F pairs it is fitted on;
-        support: their counts.
+        support: their counts;
+        uses_h: whether the check goes by H: H unless F explains clearly more pairs (fewer than
+            MOTION_PLANAR_RATIO of F's), counted by the residuals the check uses — a small rig
+            motion makes H almost as good as F by the estimators' counts, yet near points move
+            off it by tens of pixels; on a plane F is degenerate and absorbs outliers.
     """
 
     def __init__(self, model, xa: np.ndarray, xb: np.ndarray, fitted: np.ndarray, bridge) -> None:
@@ -790,6 +789,7 @@ class _MotionChecks:
             rh, rf = np.concatenate([rh, bh]), np.concatenate([rf, bf])
         self.inliers = rh <= model.px, rf <= model.epipolar_fit_px
         self.support = int(self.inliers[0].sum()), int(self.inliers[1].sum())
+        self.uses_h = self.support[0] >= MOTION_PLANAR_RATIO * self.support[1]
 
 
 class PerCameraNNLinker:

@@ -19,8 +19,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
 
-__all__ = ["greedy_tracks", "compile_plain_merge", "MergeTest", "relabel_tracks", "estimate_universe_size", "tracks_to_pairs", "track_members",
-           "is_cycle_consistent"]
+__all__ = ["greedy_tracks", "compile_plain_merge", "MergeTest", "relabel_tracks", "estimate_universe_size",
+           "tracks_to_pairs", "track_members", "is_cycle_consistent"]
 
 
 class MergeTest(NamedTuple):
