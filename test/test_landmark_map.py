@@ -25,6 +25,8 @@ def test_true_ids_predict_later_windows_to_the_keypoint_noise():
 
 
 def test_reprojection_summary_known_answers():
-    assert reprojection_summary([0.5, 1.0, 5.0]) == {"median_px": 1.0, "within_px": 2 / 3, "predicted": 3.0}
+    assert reprojection_summary([0.5, 1.0, 5.0]) == {"median_px": 1.0, "within_px": 2 / 3, "predicted": 3.0,
+                                                     "predicted_within": 2.0}
     empty = reprojection_summary([])
-    assert np.isnan(empty["median_px"]) and np.isnan(empty["within_px"]) and empty["predicted"] == 0.0
+    assert np.isnan(empty["median_px"]) and np.isnan(empty["within_px"])
+    assert empty["predicted"] == 0.0 and empty["predicted_within"] == 0.0
