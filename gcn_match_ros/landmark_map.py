@@ -180,8 +180,7 @@ def held_out_sighting_errors(problems: Sequence[Problem], landmark_ids: Sequence
 def reprojection_summary(errors: Sequence[float], config: MapConfig = MapConfig()) -> Dict[str, float]:
     """median_px: median held-out reprojection error; within_px: share within the map's
     ``max_reprojection_px``; predicted: how many (NaN statistics without any); predicted_within:
-    how many within it (what a consumer can use: two maps that predict different sightings
-    compare by this count, not by statistics over their own sightings)."""
+    how many within it."""
     err = np.asarray(list(errors), np.float64)
     within = err <= config.max_reprojection_px
     return {"median_px": float(np.median(err)) if err.size else float("nan"),
