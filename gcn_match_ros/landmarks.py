@@ -319,14 +319,14 @@ class LandmarkTracker:
                 np.add.at(votes, unit[sel], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
                 np.add.at(checked, unit[sel], 1)
         for g, sel in groups:
-            if still[g] or checked[unit[sel][fitted[sel]]].all():
+            fitted_in_sel = fitted[sel]
+            if still[g] or checked[unit[sel][fitted_in_sel]].all():
                 continue
             # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
             bridge = None
             if bridge_bounds[g + 1] > bridge_bounds[g]:
                 at = slice(bridge_bounds[g], bridge_bounds[g + 1])
                 bridge = bridge_xa[at], bridge_xb[at]
-            fitted_in_sel = fitted[sel]
             fa, fb = xa[sel][fitted_in_sel], xb[sel][fitted_in_sel]
             if bridge is not None:
                 fa, fb = np.concatenate([fa, bridge[0]]), np.concatenate([fb, bridge[1]])
@@ -445,22 +445,17 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
     bridge_xa, bridge_xb (B, 2) float64.
     """
     n_cams = xy.shape[1]
+    pair_row = np.empty(rows.size * n_cams, np.int64)
+    pair_cam = np.empty(rows.size * n_cams, np.int64)
+    pair_ns = np.empty(rows.size * n_cams, np.int64)
     n_pairs = 0
     for r in range(rows.size):
         lm = best_lm[unit_of_row[r]]
         for c in range(n_cams):
             if not np.isnan(xy[lm, c, 0]):
+                pair_row[n_pairs], pair_cam[n_pairs], pair_ns[n_pairs] = r, c, seen_ns[lm]
                 n_pairs += 1
-    pair_row = np.empty(n_pairs, np.int64)
-    pair_cam = np.empty(n_pairs, np.int64)
-    pair_ns = np.empty(n_pairs, np.int64)
-    p = 0
-    for r in range(rows.size):
-        lm = best_lm[unit_of_row[r]]
-        for c in range(n_cams):
-            if not np.isnan(xy[lm, c, 0]):
-                pair_row[p], pair_cam[p], pair_ns[p] = r, c, seen_ns[lm]
-                p += 1
+    pair_row, pair_cam, pair_ns = pair_row[:n_pairs], pair_cam[:n_pairs], pair_ns[:n_pairs]
     # the frames' times, few: ranked by a scan, the pairs then put in key order by a counting sort
     # (stable: row order, then camera order, within a group)
     times = np.empty(n_pairs, np.int64)
