@@ -45,11 +45,11 @@ from typing import Dict, Iterator, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
 import numba
+import numba.extending
 import numpy as np
 
 from .descriptors import cosine_distance
-from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, residuals, trusted_support
-from .rounding import track_members
+from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, _residuals, fit_pair, model_matrices, trusted_support
 from .threads import alongside
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "WindowSearch", "PerCameraNNLinker"]
@@ -84,6 +84,7 @@ MOTION_PLANAR_RATIO = 0.95
 #: a window's landmark candidates are found on two threads from this many (keypoint, landmark)
 #: similarities (~5 ns each) on: below it, handing half to the second thread costs more than it saves
 SPLIT_PRODUCTS = 100_000
+_NO_PAIRS = np.zeros((0, 2))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,12 +197,12 @@ class LandmarkTracker:
         if searched.candidates is not None:
             member, lm, score = searched.candidates
             best_lm, best_score = _best_per_unit(units.of_keypoint[member], lm, score, sizes.size, cfg.ratio)
-            if cfg.verify_motion:
-                claimed = _one_to_one(best_lm, best_score) >= 0
-                best_lm = self._motion_checked(best_lm, claimed, units, column, keypoints)
+        order = np.argsort(-best_score, kind="stable")   # the units, best score first
+        if searched.candidates is not None and cfg.verify_motion:
+            claimed = _one_to_one(best_lm, order) >= 0
+            best_lm = self._motion_checked(best_lm, claimed, units, column, keypoints)
         # units take landmarks one-to-one, best score first; a track left without one is a new point
-        best_lm = _one_to_one(best_lm, best_score)
-        order = np.argsort(-best_score, kind="stable")
+        best_lm = _one_to_one(best_lm, order)
         winners = best_lm[order] >= 0
         continued = order[winners]
         founders = order[~winners & (sizes[order] >= 2)]
@@ -309,62 +310,45 @@ class LandmarkTracker:
                                     self._previous_ns, MIN_SEEDS, RANSAC_PX)
         votes = np.zeros(sizes.size, np.int64)   # per unit: pairs that agree minus pairs that do not
         checked = np.zeros(sizes.size, np.int64)  # per unit: pairs under a trusted model
-        groups = [(g, slice(a, b)) for g, (a, b) in enumerate(zip(starts.tolist(), ends.tolist()))]
         # frame pairs whose image held still first (a standing robot; on the sample bags an image
         # seen again by the next camera): the identity is their model, exact and free, and F
-        # would be degenerate there. Then fitted models, only where a continuation is still
-        # unchecked: each fit costs about a millisecond.
-        for g, sel in groups:
-            if still[g] and trusted_support(int((moved[sel][fitted[sel]] <= RANSAC_PX).sum()), int(fitted[sel].sum())):
-                np.add.at(votes, unit[sel], np.where(moved[sel] <= MOTION_SLACK * RANSAC_PX, 1, -1))
-                np.add.at(checked, unit[sel], 1)
-        for g, sel in groups:
-            fitted_in_sel = fitted[sel]
-            if still[g] or checked[unit[sel][fitted_in_sel]].all():
-                continue
-            # re-found after a gap: the frame pair's model is fitted with its bridge pairs too
+        # would be degenerate there
+        _vote_still(unit, fitted, moved, starts, ends, still, votes, checked)
+        # then models, only where a continuation is still unchecked: a camera pair's frames the
+        # same number of windows apart as last window's take that window's model first (a rig
+        # moving steadily moves alike window after window); the frame pairs it serves are voted
+        # in one compiled pass, which stops at a frame pair whose model must be refined or
+        # fitted (each fit costs about a millisecond): that one is done here, then the pass goes on
+        keys = [self._remembered_as(int(a), int(b), int(ns)) for a, b, ns in zip(cam_a, cam_b, frame_ns)]
+        remembered = [self._motion_models.get(key, (None, 0.0)) for key in keys]
+        known, matrices, has_h, has_f, thresholds, shares = _packed_models(remembered)
+        g = -1
+        while True:
+            g = _vote_remembered(g + 1, unit, xa, xb, fitted, starts, ends, still, bridge_bounds, bridge_xa,
+                                 bridge_xb, known, matrices, has_h, has_f, thresholds, shares, votes, checked)
+            if g == starts.size:
+                break
+            sel = slice(starts[g], ends[g])
             bridge = None
             if bridge_bounds[g + 1] > bridge_bounds[g]:
                 at = slice(bridge_bounds[g], bridge_bounds[g + 1])
                 bridge = bridge_xa[at], bridge_xb[at]
-            fa, fb = xa[sel][fitted_in_sel], xb[sel][fitted_in_sel]
-            if bridge is not None:
-                fa, fb = np.concatenate([fa, bridge[0]]), np.concatenate([fb, bridge[1]])
-            # a camera pair's frames the same number of windows apart as last window's: that
-            # window's model first (a rig moving steadily moves alike window after window),
-            # refined or re-fitted when it explains fewer pairs than when it was fitted
-            back = self._windows_back(int(frame_ns[g]))
-            remembered_as = None if back is None else (int(cam_a[g]), int(cam_b[g]), back)
-            model, fitted_share = self._motion_models.get(remembered_as, (None, 0.0))
-            # residuals once per model on the frame pair's pairs (the fitted ones are among them)
-            # and the bridge pairs
-            checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge) if model is not None else None
-            enough = (fitted_share - _reuse_drop(fitted_share, fa.shape[0])) * fa.shape[0]
-            if checks is not None and max(checks.support) < enough:
-                # least squares on the pairs it still explains first: a steady rig's motion drifts
-                # slowly, and a re-fit costs several times as much
-                refined = _refined(model, checks, fa, fb)
-                if refined is not None:
-                    model, checks = refined, _MotionChecks(refined, xa[sel], xb[sel], fitted_in_sel, bridge)
-            if checks is None or max(checks.support) < enough:
-                # fitted on an even spread of at most MOTION_FIT_PAIRS pairs, checked on all of them
-                fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
-                model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
-                if model is None:
-                    continue
-                checks = _MotionChecks(model, xa[sel], xb[sel], fitted_in_sel, bridge)
-                fitted_share = max(checks.support) / fa.shape[0]
-            if not trusted_support(max(checks.support), fa.shape[0]):
+            fitted_model = _refitted(remembered[g], xa[sel], xb[sel], fitted[sel], bridge)
+            if fitted_model is None:
                 continue
-            if remembered_as is not None:
-                self._motion_models[remembered_as] = (model, fitted_share)
-            rh, rf = checks.residuals
-            agree = (rh <= MOTION_SLACK * model.px) if checks.uses_h else (rf <= MOTION_SLACK * model.epipolar_px)
-            np.add.at(votes, unit[sel], np.where(agree, 1, -1))
-            np.add.at(checked, unit[sel], 1)
+            model, fitted_share, checks = fitted_model
+            if keys[g] is not None:
+                self._motion_models[keys[g]] = (model, fitted_share)
+            _add_votes(votes, checked, unit[sel], *checks.residuals, checks.uses_h, model.px, model.epipolar_px)
         gap = np.zeros(sizes.size, bool)
         gap[cont] = self._seen_ns[best_lm[cont]] != self._previous_ns
         return np.where((votes < 0) | ((checked == 0) & ((sizes == 1) | gap)), -1, best_lm)
+
+    def _remembered_as(self, cam_a: int, cam_b: int, frame_ns: int):
+        """The key of a frame pair's remembered motion model: (camera then, camera now, windows
+        back), None for a frame older than the remembered windows."""
+        back = self._windows_back(frame_ns)
+        return None if back is None else (cam_a, cam_b, back)
 
     # -- state ---------------------------------------------------------------------------
     def _reset(self, dim: int) -> None:
@@ -397,10 +381,8 @@ class LandmarkTracker:
         """Update the landmarks ``js`` (K,) with their units at once: the units' members one
         unit after another in ``rows``, ``sizes`` (K,) members each."""
         _blend_summaries(self._desc, js, rows, sizes, desc, self.config.summary_weight)
-        self._xy_before[js], self._before_ns[js] = self._xy[js], self._seen_ns[js]
-        self._seen_ns[js] = stamp_ns
-        self._xy[js] = np.nan
-        self._xy[np.repeat(js, sizes), column[rows]] = keypoints[rows]
+        _move_sightings(self._xy, self._xy_before, self._seen_ns, self._before_ns, js, rows, sizes, column,
+                        keypoints, stamp_ns)
 
     def _found(self, rows, sizes, column, keypoints, desc, stamp_ns) -> int:
         """New landmarks for K tracks, ids in their order: their members one track after another
@@ -562,6 +544,27 @@ def _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_befo
     return np.flatnonzero(take)
 
 
+@numba.njit(cache=True)
+def _move_sightings(xy, xy_before, seen_ns, before_ns, js, rows, sizes, column, keypoints, stamp_ns) -> None:
+    """In place: landmark ``js[u]``'s last sightings become its sightings before, and unit u's
+    members (``rows``, one unit after another, ``sizes`` (K,) each) its last ones, at ``stamp_ns``.
+    Compiled (numpy's gathers and scatters took ~0.1 ms at 2 x 500).
+
+    Shapes: xy, xy_before (L, cameras, 2); seen_ns, before_ns (L,); js (K,) distinct; column
+    (N,) each keypoint's camera column; keypoints (N, 2)."""
+    r = 0
+    for u in range(js.size):
+        j = js[u]
+        before_ns[j], seen_ns[j] = seen_ns[j], stamp_ns
+        for c in range(xy.shape[1]):
+            xy_before[j, c, 0], xy_before[j, c, 1] = xy[j, c, 0], xy[j, c, 1]
+            xy[j, c, 0], xy[j, c, 1] = np.nan, np.nan
+        for k in range(r, r + sizes[u]):
+            row = rows[k]
+            xy[j, column[row], 0], xy[j, column[row], 1] = keypoints[row, 0], keypoints[row, 1]
+        r += sizes[u]
+
+
 @numba.njit(cache=True, inline="always")
 def _member_mean(mean, total, rows, start, size, desc) -> None:
     """Into ``mean`` (D,) float64: the mean descriptor of the ``size`` members
@@ -639,14 +642,8 @@ class _Units:
     """
 
     def __init__(self, track: np.ndarray) -> None:
-        track = np.asarray(track, np.int64)
-        tracked, starts = track_members(track)
-        lone = np.flatnonzero(track < 0)
-        self._members = np.concatenate([tracked, lone])
-        self._starts = np.r_[starts[:-1], tracked.size + np.arange(lone.size + 1)]   # (U + 1,)
+        self._members, self._starts, self.of_keypoint = _unit_layout(np.asarray(track, np.int64))
         self.sizes = np.diff(self._starts)
-        self.of_keypoint = np.empty(track.size, np.int64)
-        self.of_keypoint[self._members] = np.repeat(np.arange(self.sizes.size), self.sizes)
 
     def __len__(self) -> int:
         return int(self.sizes.size)
@@ -660,6 +657,40 @@ class _Units:
         sizes = self.sizes[units]
         first = np.repeat(self._starts[units] - np.cumsum(sizes) + sizes, sizes)
         return self._members[first + np.arange(first.size)]
+
+
+@numba.njit(cache=True)
+def _unit_layout(track):
+    """:class:`_Units`' arrays, compiled (numpy's sort, concatenations and scatter took ~0.15 ms
+    a 2 x 500 window): the members, tracks first (ids ascending, each track's keypoints in
+    keypoint order: :func:`gcn_match_ros.rounding.track_members`' order), then every keypoint in
+    no track, ascending; where each unit starts among them; each keypoint's unit.
+
+    Shapes: track (N,) int64, -1 = none -> (N,), (U + 1,), (N,) int64.
+    """
+    n = track.size
+    tracked = np.flatnonzero(track >= 0)
+    members = np.empty(n, np.int64)
+    members[:tracked.size] = tracked[np.argsort(track[tracked], kind="mergesort")]
+    starts = np.empty(n + 1, np.int64)
+    units = 0
+    for k in range(tracked.size):
+        if k == 0 or track[members[k]] != track[members[k - 1]]:
+            starts[units] = k
+            units += 1
+    k = tracked.size
+    for i in range(n):
+        if track[i] < 0:
+            members[k] = i
+            starts[units] = k
+            units += 1
+            k += 1
+    starts[units] = n
+    of_keypoint = np.empty(n, np.int64)
+    for u in range(units):
+        for k in range(starts[u], starts[u + 1]):
+            of_keypoint[members[k]] = u
+    return members, starts[:units + 1], of_keypoint
 
 
 def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units: int, ratio: float):
@@ -710,18 +741,19 @@ def _two_best_per_unit(unit, lm, score, n_units):
 
 
 @numba.njit(cache=True)
-def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """Each landmark to the unit that scores it highest (the first unit on ties); the other
-    units' landmark becomes -1. Compiled: one pass in score order (a sort and np.unique took
-    0.1 ms a call, twice a window).
+def _one_to_one(best_lm: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Each landmark to the first unit in ``order`` that takes it (the units by descending score,
+    ties in unit order: the one that scores it highest, the first on ties); the other units'
+    landmark becomes -1. Compiled: one pass (a sort and np.unique took 0.1 ms a call, twice a
+    window).
 
-    Shapes: best_lm (U,) landmark index (-1: none), score (U,) -> (U,).
+    Shapes: best_lm (U,) landmark index (-1: none), order (U,) a permutation -> (U,).
     """
     out = np.full(best_lm.size, -1, np.int64)
     if best_lm.size == 0:
         return out
     taken = np.zeros(best_lm.max() + 1, np.bool_)
-    for u in np.argsort(-score, kind="mergesort"):   # stable: the first unit on ties
+    for u in order:
         lm = best_lm[u]
         if lm >= 0 and not taken[lm]:
             taken[lm] = True
@@ -729,6 +761,7 @@ def _one_to_one(best_lm: np.ndarray, score: np.ndarray) -> np.ndarray:
     return out
 
 
+@numba.extending.register_jitable
 def _reuse_drop(share: float, n: int) -> float:
     """How far below ``share`` (the share a remembered motion model explained when fitted) its
     share of a new frame pair's n pairs may fall before it is refined or re-fitted:
@@ -737,6 +770,127 @@ def _reuse_drop(share: float, n: int) -> float:
     to window)."""
     p = (share * n + 1.0) / (n + 2.0)  # not 0 or 1: a share of 1.0 fitted on 90 pairs is not exact
     return max(MOTION_REUSE_DROP, MOTION_REUSE_SIGMAS * math.sqrt(p * (1.0 - p) / n))
+
+
+@numba.extending.register_jitable
+def _enough_support(share: float, n: int) -> float:
+    """The support a remembered motion model needs on a frame pair's n pairs to be used as it is:
+    its ``share`` when fitted, less :func:`_reuse_drop`, of them."""
+    return (share - _reuse_drop(share, n)) * n
+
+
+@numba.extending.register_jitable
+def _uses_h(support_h: int, support_f: int) -> bool:
+    """Whether a motion check goes by H (:attr:`_MotionChecks.uses_h`)."""
+    return support_h >= MOTION_PLANAR_RATIO * support_f
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_support(xa, xb, fitted, bridge_xa, bridge_xb, H, Hi, F, has_h, has_f, px, fit_px):
+    """:class:`_MotionChecks`' arithmetic (the matrices as :func:`gcn_match_ros.edges.verify.model_matrices`
+    gives them): residuals (M,) twice on xa <-> xb (M, 2), and whether each pair the model is
+    fitted on (those of ``fitted`` (M,), then the bridge pairs (B, 2)) lies within H's threshold
+    ``px`` and within F's fit threshold ``fit_px``."""
+    rh, rf = _residuals(xa, xb, H, Hi, F, has_h, has_f)
+    bh, bf = _residuals(bridge_xa, bridge_xb, H, Hi, F, has_h, has_f)
+    n = 0
+    for m in range(rh.size):
+        n += fitted[m]
+    in_h = np.empty(n + bh.size, np.bool_)
+    in_f = np.empty(n + bh.size, np.bool_)
+    k = 0
+    for m in range(rh.size):
+        if fitted[m]:
+            in_h[k], in_f[k] = rh[m] <= px, rf[m] <= fit_px
+            k += 1
+    for m in range(bh.size):
+        in_h[k], in_f[k] = bh[m] <= px, bf[m] <= fit_px
+        k += 1
+    return rh, rf, in_h, in_f
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_votes(votes, checked, unit, rh, rf, uses_h, px, epipolar_px) -> None:
+    """In place: each pair's unit (``unit`` (M,)) gets a vote for (+1) or against (-1) its
+    continuation, by whether the pair agrees with the motion model (residuals ``rh``, ``rf``
+    (M,), H's when ``uses_h``, within MOTION_SLACK times its tolerance), and a check."""
+    for m in range(unit.size):
+        agree = rh[m] <= MOTION_SLACK * px if uses_h else rf[m] <= MOTION_SLACK * epipolar_px
+        votes[unit[m]] += 1 if agree else -1
+        checked[unit[m]] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote_still(unit, fitted, moved, starts, ends, still, votes, checked) -> None:
+    """In place: the votes and checks of the frame pairs whose image held still (``still``
+    (G,)), under the identity: their pairs agree when they moved (``moved`` (P,)) at most
+    MOTION_SLACK x RANSAC_PX, counted when the identity explains the fitted pairs with trusted
+    support (:func:`_motion_pairs`' pairs and frame pairs)."""
+    for g in range(starts.size):
+        if not still[g]:
+            continue
+        inliers, n = 0, 0
+        for m in range(starts[g], ends[g]):
+            if fitted[m]:
+                n += 1
+                inliers += moved[m] <= RANSAC_PX
+        if trusted_support(inliers, n):
+            for m in range(starts[g], ends[g]):
+                votes[unit[m]] += 1 if moved[m] <= MOTION_SLACK * RANSAC_PX else -1
+                checked[unit[m]] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _vote_remembered(g, unit, xa, xb, fitted, starts, ends, still, bridge_bounds, bridge_xa, bridge_xb, known,
+                     matrices, has_h, has_f, thresholds, shares, votes, checked) -> int:
+    """In place: the votes and checks of the frame pairs from ``g`` on (moving ones with a
+    continuation not yet checked) that their remembered motion model serves as it is (support at
+    least :func:`_enough_support`; counted where that is trusted support). Returns the first frame
+    pair whose model must be refined or fitted instead (no remembered model, or too little
+    support), or G when none is left.
+
+    Shapes: :func:`_motion_pairs`' pairs (P,) and frame pairs (G,); the remembered models as
+    :func:`_packed_models` packs them.
+    """
+    while g < starts.size:
+        a, b, c, d = starts[g], ends[g], bridge_bounds[g], bridge_bounds[g + 1]
+        unchecked = False
+        for m in range(a, b):
+            if fitted[m] and checked[unit[m]] == 0:
+                unchecked = True
+                break
+        if still[g] or not unchecked:
+            g += 1
+            continue
+        if not known[g]:
+            return g
+        rh, rf, in_h, in_f = _model_support(xa[a:b], xb[a:b], fitted[a:b], bridge_xa[c:d], bridge_xb[c:d],
+                                            matrices[g, 0], matrices[g, 1], matrices[g, 2], has_h[g], has_f[g],
+                                            thresholds[g, 0], thresholds[g, 2])
+        support_h, support_f = in_h.sum(), in_f.sum()
+        if max(support_h, support_f) < _enough_support(shares[g], in_h.size):
+            return g
+        if trusted_support(max(support_h, support_f), in_h.size):
+            _add_votes(votes, checked, unit[a:b], rh, rf, _uses_h(support_h, support_f), thresholds[g, 0],
+                       thresholds[g, 1])
+        g += 1
+    return g
+
+
+def _packed_models(remembered):
+    """Remembered motion models ((model or None, share when fitted) per frame pair) as arrays
+    for :func:`_vote_remembered`: known (G,) bool; matrices (G, 3, 3, 3) float64 (H, H⁻¹, F;
+    :func:`gcn_match_ros.edges.verify.model_matrices`); has_h, has_f (G,) bool; thresholds (G, 3)
+    (px, epipolar_px, epipolar_fit_px); shares (G,)."""
+    n = len(remembered)
+    known, has_h, has_f = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+    matrices, thresholds, shares = np.zeros((n, 3, 3, 3)), np.zeros((n, 3)), np.zeros(n)
+    for g, (model, share) in enumerate(remembered):
+        if model is not None:
+            known[g], shares[g] = True, share
+            matrices[g, 0], matrices[g, 1], matrices[g, 2], has_h[g], has_f[g] = model_matrices(model)
+            thresholds[g] = model.px, model.epipolar_px, model.epipolar_fit_px
+    return known, matrices, has_h, has_f, thresholds, shares
 
 
 def _refined(model: PairModel, checks: "_MotionChecks", xa: np.ndarray, xb: np.ndarray) -> Optional[PairModel]:
@@ -762,6 +916,40 @@ def _refined(model: PairModel, checks: "_MotionChecks", xa: np.ndarray, xb: np.n
     return dataclasses.replace(model, H=H, F=F)
 
 
+def _refitted(remembered, xa, xb, fitted, bridge):
+    """The model of a frame pair whose remembered model (``remembered``: (model or None,
+    share explained when fitted)) explains too few of its pairs (:func:`_enough_support`):
+    that model refined by least squares on the pairs it still explains (a steady rig's motion
+    drifts slowly, and a re-fit costs several times as much), else a new fit on an even
+    spread of at most MOTION_FIT_PAIRS of the pairs it is fitted on (``fitted`` (M,) of
+    xa <-> xb (M, 2), then the ``bridge`` pairs), checked on all of them.
+
+    Returns:
+        (model, share explained when fitted, its :class:`_MotionChecks`), or None when no
+        model with trusted support is found.
+    """
+    model, fitted_share = remembered
+    fa, fb = xa[fitted], xb[fitted]
+    if bridge is not None:
+        fa, fb = np.concatenate([fa, bridge[0]]), np.concatenate([fb, bridge[1]])
+    enough = _enough_support(fitted_share, fa.shape[0])
+    checks = None
+    if model is not None:
+        refined = _refined(model, _MotionChecks(model, xa, xb, fitted, bridge), fa, fb)
+        if refined is not None:
+            model, checks = refined, _MotionChecks(refined, xa, xb, fitted, bridge)
+    if checks is None or max(checks.support) < enough:
+        fit = np.linspace(0, fa.shape[0] - 1, min(fa.shape[0], MOTION_FIT_PAIRS)).astype(np.int64)
+        model = fit_pair(fa[fit], fb[fit], estimator=MOTION_ESTIMATOR, max_iters=MOTION_MAX_ITERS)
+        if model is None:
+            return None
+        checks = _MotionChecks(model, xa, xb, fitted, bridge)
+        fitted_share = max(checks.support) / fa.shape[0]
+    if not trusted_support(max(checks.support), fa.shape[0]):
+        return None
+    return model, fitted_share, checks
+
+
 class _MotionChecks:
     """A motion model's residuals on a frame pair's pairs xa <-> xb (M, 2) and its support on
     the pairs it is fitted on: those of ``fitted`` (M,) bool, then the ``bridge`` pairs (or None).
@@ -777,14 +965,16 @@ class _MotionChecks:
     """
 
     def __init__(self, model, xa: np.ndarray, xb: np.ndarray, fitted: np.ndarray, bridge) -> None:
-        self.residuals = rh, rf = residuals(model, xa, xb)
-        rh, rf = rh[fitted], rf[fitted]
-        if bridge is not None:
-            bh, bf = residuals(model, *bridge)
-            rh, rf = np.concatenate([rh, bh]), np.concatenate([rf, bf])
-        self.inliers = rh <= model.px, rf <= model.epipolar_fit_px
-        self.support = int(self.inliers[0].sum()), int(self.inliers[1].sum())
-        self.uses_h = self.support[0] >= MOTION_PLANAR_RATIO * self.support[1]
+        bridge_xa, bridge_xb = bridge if bridge is not None else (_NO_PAIRS, _NO_PAIRS)
+        rh, rf, in_h, in_f = _model_support(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
+                                            np.ascontiguousarray(fitted, np.bool_),
+                                            np.ascontiguousarray(bridge_xa, np.float64),
+                                            np.ascontiguousarray(bridge_xb, np.float64), *model_matrices(model),
+                                            model.px, model.epipolar_fit_px)
+        self.residuals = rh, rf
+        self.inliers = in_h, in_f
+        self.support = int(in_h.sum()), int(in_f.sum())
+        self.uses_h = bool(_uses_h(*self.support))
 
 
 class PerCameraNNLinker:

@@ -267,6 +267,12 @@ def test_units_are_tracks_by_id_then_lone_keypoints():
     assert units.members(np.array([3, 0, 1])).tolist() == [1, 3, 5, 0, 2]
     assert units.members(np.zeros(0, np.int64)).size == 0
     assert len(_Units(np.zeros(0, np.int64))) == 0 and len(_Units(np.full(3, -1))) == 3
+    # the tracks in rounding.track_members' order, whatever the ids
+    from gcn_match_ros.rounding import track_members
+    track = np.random.default_rng(4).integers(-1, 40, 300)
+    members, starts = track_members(track)
+    units = _Units(track)
+    assert [m.tolist() for m in units][:starts.size - 1] == [m.tolist() for m in np.split(members, starts[1:-1])]
 
 
 def test_unit_summaries_are_the_unit_vectors_along_the_members_mean():
@@ -300,9 +306,9 @@ def test_one_to_one_gives_each_landmark_to_its_highest_scoring_unit_first_on_tie
 
     best = np.array([3, 3, 1, -1, 1, 3, 0])
     score = np.array([0.5, 0.9, 0.7, 0.99, 0.7, 0.9, 0.1], np.float32)
-    assert _one_to_one(best, score).tolist() == [-1, 3, 1, -1, -1, -1, 0]
-    assert _one_to_one(np.zeros(0, np.int64), np.zeros(0)).size == 0
-    assert _one_to_one(np.full(3, -1), np.ones(3)).tolist() == [-1, -1, -1]
+    assert _one_to_one(best, np.argsort(-score, kind="stable")).tolist() == [-1, 3, 1, -1, -1, -1, 0]
+    assert _one_to_one(np.zeros(0, np.int64), np.zeros(0, np.int64)).size == 0
+    assert _one_to_one(np.full(3, -1), np.arange(3)).tolist() == [-1, -1, -1]
 
 
 def test_motion_pairs_group_by_frame_pair_and_bridge_a_frame_seen_before_the_last_window():
@@ -611,3 +617,42 @@ def test_a_remembered_motion_may_lose_what_a_share_varies_by():
     assert _reuse_drop(0.9, 90) == pytest.approx(2 * np.sqrt(p * (1 - p) / 90))  # 0.062
     assert _reuse_drop(1.0, 90) > MOTION_REUSE_DROP  # a share of 1.0 on 90 pairs is not exact
     assert _reuse_drop(0.9, 20) > _reuse_drop(0.9, 90) > _reuse_drop(0.9, 1000)
+
+
+def test_remembered_motions_vote_in_one_pass_that_stops_where_a_model_must_be_refitted():
+    """Three moving frame pairs: the first's remembered motion explains its pairs (votes counted
+    in the pass: 20 agree, 4 do not), the second has no remembered motion (the pass stops there),
+    the third's remembered motion no longer explains its pairs (the pass, resumed, stops there)."""
+    from gcn_match_ros.edges.verify import fit_pair
+    from gcn_match_ros.landmarks import _enough_support, _packed_models, _vote_remembered, _vote_still
+
+    rng = np.random.default_rng(3)
+    n = 24
+    xa = rng.uniform(0, 640, (3 * n, 2))
+    xb = xa + [6.0, 0.0]
+    xb[:4] += 30.0                                    # 4 pairs of the first frame pair against the motion
+    unit = np.arange(3 * n)
+    fitted = np.ones(3 * n, bool)
+    starts, ends = np.array([0, n, 2 * n]), np.array([n, 2 * n, 3 * n])
+    still = np.zeros(3, bool)
+    no_bridge = np.zeros(4, np.int64), np.zeros((0, 2)), np.zeros((0, 2))
+    model = fit_pair(xa[4:n], xb[4:n])
+    moved_on = fit_pair(xa[4:n], xa[4:n] + [0.0, 25.0])   # a motion the third pair no longer has
+    assert _enough_support(0.8, n) < 20 < _enough_support(1.0, n)   # 20 of 24 serve a model fitted at 0.8
+    packed = _packed_models([(model, 0.8), (None, 0.0), (moved_on, 0.8)])
+    votes, checked = np.zeros(3 * n, np.int64), np.zeros(3 * n, np.int64)
+    _vote_still(unit, fitted, np.zeros(3 * n), starts, ends, still, votes, checked)  # none still
+    assert not checked.any()
+
+    def vote_from(g):
+        return _vote_remembered(g, unit, xa, xb, fitted, starts, ends, still, no_bridge[0], *no_bridge[1:],
+                                *packed, votes, checked)
+
+    assert vote_from(0) == 1
+    np.testing.assert_array_equal(votes[:n], np.r_[-np.ones(4), np.ones(n - 4)])
+    assert (checked[:n] == 1).all() and not checked[n:].any()
+    assert vote_from(2) == 2 and not checked[n:].any()
+    assert vote_from(3) == 3
+    # a frame pair whose continuations are all checked already is passed over, model or not
+    checked[n:2 * n] = 1
+    assert vote_from(1) == 2

@@ -33,11 +33,12 @@ from typing import Optional, Tuple
 
 import cv2
 import numba
+import numba.extending
 import numpy as np
 
 from ..geometry import sampson_distance, unproject
 
-__all__ = ["PairModel", "fit_pair", "residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
+__all__ = ["PairModel", "fit_pair", "residuals", "model_matrices", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
            "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX",
            "transfer_error_px", "sampson_error_px"]
 
@@ -68,6 +69,7 @@ EPIPOLAR_ESTIMATOR = cv2.USAC_ACCURATE
 CHEIRAL_SHARE = 0.8
 
 
+@numba.extending.register_jitable
 def trusted_support(inliers: int, seeds: int, min_inliers: int = MIN_INLIERS,
                     min_inlier_ratio: float = MIN_INLIER_RATIO) -> bool:
     """Whether a model explaining ``inliers`` of ``seeds`` pairs may be believed: at least
@@ -275,12 +277,18 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
 
     Shapes: xa, xb (M, 2) -> (M,) float64 twice.
     """
+    return _residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
+                      *model_matrices(model))
+
+
+def model_matrices(model: PairModel):
+    """``model`` as :func:`_residuals` takes it: H, H⁻¹, F (3, 3) float64 each (zeros where
+    missing), whether H is used (it is, with an inverse) and whether F is."""
     F, Hi = model.F, model.H_inverse
     H = None if Hi is None else model.H
     missing = np.zeros((3, 3))
-    return _residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
-                      missing if H is None else np.asarray(H, np.float64), missing if Hi is None else Hi,
-                      missing if F is None else np.asarray(F, np.float64), H is not None, F is not None)
+    return (missing if H is None else np.asarray(H, np.float64), missing if Hi is None else Hi,
+            missing if F is None else np.asarray(F, np.float64), H is not None, F is not None)
 
 
 @numba.njit(cache=True, nogil=True)
