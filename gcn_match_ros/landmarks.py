@@ -475,6 +475,10 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
         fitted[i] = claimed[unit[i]]
         dx, dy = xb[i, 0] - xa[i, 0], xb[i, 1] - xa[i, 1]
         moved[i] = np.sqrt(dx * dx + dy * dy)
+    # every frame pair's bridge rows at once, by the frame pair's key (a scan of the rows per frame
+    # pair cost ~5 us each, and a window has ~36 of them at 2 x 500, most with too few pairs to keep)
+    bridge_start, bridges = _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before,
+                                         previous_ns, times)
     # the frame pairs, kept where they have enough pairs to fit on
     starts = np.empty(n_pairs, np.int64)
     ends = np.empty(n_pairs, np.int64)
@@ -483,7 +487,7 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
     frame_ns = np.empty(n_pairs, np.int64)
     still = np.empty(n_pairs, np.bool_)
     bridge_bounds = np.zeros(n_pairs + 1, np.int64)
-    bridge_row = np.empty(0, np.int64)
+    bridge_row = np.empty(bridges.size, np.int64)   # a frame pair's key is its own: each bucket once
     n_groups = 0
     i = 0
     while i < n_pairs:
@@ -495,9 +499,8 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
         n_fit = 0
         for k in range(i, j):
             n_fit += fitted[k]
-        rows_of_bridge = _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before,
-                                      previous_ns, ca, cb, t)
-        if n_fit + rows_of_bridge.size >= min_seeds:
+        b0, b1 = bridge_start[key[first]], bridge_start[key[first] + 1]
+        if n_fit + b1 - b0 >= min_seeds:
             starts[n_groups], ends[n_groups] = i, j
             cam_a[n_groups], cam_b[n_groups], frame_ns[n_groups] = ca, cb, t
             if n_fit:
@@ -511,10 +514,12 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
                 still[n_groups] = 0.5 * (m[(n_fit - 1) // 2] + m[n_fit // 2]) <= still_px
             else:
                 still[n_groups] = False
-            bridge_row = np.concatenate((bridge_row, rows_of_bridge))
-            bridge_bounds[n_groups + 1] = bridge_row.size
+            at = bridge_bounds[n_groups]
+            bridge_row[at:at + b1 - b0] = bridges[b0:b1]
+            bridge_bounds[n_groups + 1] = at + b1 - b0
             n_groups += 1
         i = j
+    bridge_row = bridge_row[:bridge_bounds[n_groups]]
     bridge_xa = np.empty((bridge_row.size, 2))
     bridge_xb = np.empty((bridge_row.size, 2))
     for g in range(n_groups):
@@ -528,20 +533,36 @@ def _motion_pairs(rows, unit_of_row, best_lm, claimed, column, keypoints, xy, se
 
 
 @numba.njit(cache=True, inline="always")
-def _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before, previous_ns, cam_then,
-                 cam_now, t):
-    """The rows (ascending) that bridge frame pair (``cam_then`` at time ``t``, ``cam_now``) of
-    :func:`_motion_pairs`: continuations from the last window, their keypoint in ``cam_now``,
-    whose landmark's sighting before the last one was in ``cam_then`` at ``t``; none for a frame
-    of the last window itself."""
-    if t == previous_ns:
-        return np.empty(0, np.int64)
-    take = np.zeros(rows.size, np.bool_)
+def _bridge_rows(rows, unit_of_row, best_lm, column, seen_ns, before_ns, xy_before, previous_ns, times):
+    """The rows that bridge each frame pair of :func:`_motion_pairs` (camera then at a time of
+    ``times``, camera now): continuations from the last window, their keypoint in the camera now,
+    whose landmark's sighting before the last one was in the camera then at that time; none for
+    a frame of the last window itself. By the frame pairs' key ((camera then x cameras + camera
+    now) x times + the time's rank), rows ascending within one: (keys + 1,) bucket starts and the
+    rows, bucket after bucket."""
+    n_cams = xy_before.shape[1]
+    key = np.full(rows.size * n_cams, -1, np.int64)   # per (row, camera then)
+    start = np.zeros(n_cams * n_cams * times.size + 1, np.int64)
     for r in range(rows.size):
         lm = best_lm[unit_of_row[r]]
-        take[r] = (seen_ns[lm] == previous_ns and column[rows[r]] == cam_now and before_ns[lm] == t
-                   and not np.isnan(xy_before[lm, cam_then, 0]))
-    return np.flatnonzero(take)
+        t = before_ns[lm]
+        if seen_ns[lm] != previous_ns or t == previous_ns:
+            continue
+        rank = np.searchsorted(times, t)
+        if rank == times.size or times[rank] != t:
+            continue   # no continuation's frame pair at that time
+        for c in range(n_cams):
+            if not np.isnan(xy_before[lm, c, 0]):
+                key[r * n_cams + c] = (c * n_cams + column[rows[r]]) * times.size + rank
+                start[key[r * n_cams + c] + 1] += 1
+    start = np.cumsum(start)
+    fill = start[:-1].copy()
+    bridges = np.empty(start[-1], np.int64)
+    for k in range(key.size):
+        if key[k] >= 0:
+            bridges[fill[key[k]]] = k // n_cams
+            fill[key[k]] += 1
+    return start, bridges
 
 
 @numba.njit(cache=True)
