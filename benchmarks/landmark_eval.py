@@ -180,9 +180,11 @@ def main(argv=None) -> int:
             print(f"{bag.name}: precision {ours['id_precision']:.3f} / {base['id_precision']:.3f}, fragmentation "
                   f"{ours['fragmentation']:.2f} / {base['fragmentation']:.2f}; {shortfalls[-1]}", flush=True)
     cost = "; ".join(f"{c} cameras {100 * max(v):.0f}%" for c, v in sorted(overhead.items()))
-    latency = (f"Association time relative to solving the window (worst sequence; the goal: temporal association "
-               f"within 20% of per-window matching): {cost} — "
-               f"{'met' if max(max(v) for v in overhead.values()) <= 0.2 else 'NOT met'}.")
+    latency = (f"The tracker's time relative to solving the window, both on one thread (worst sequence; its search "
+               f"included, which the node runs beside the solve): {cost} — "
+               f"{'within' if max(max(v) for v in overhead.values()) <= 0.2 else 'above'} 20%. A stricter measure than "
+               "issue 13's goal, the node's latency with landmarks within 20% of without, which "
+               "node_latency_landmarks.py --scene moving measures.")
     worst_p = min(m["id_precision"] for m in agg["tracker"])
     worst_f = max(m["fragmentation"] for m in agg["tracker"])
     verdict = (f"Goals (every sequence): id precision >= 0.95: worst {worst_p:.3f}, "
