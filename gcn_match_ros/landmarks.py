@@ -49,7 +49,8 @@ import numba.extending
 import numpy as np
 
 from .descriptors import cosine_distance
-from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, _residuals, fit_pair, model_matrices, trusted_support
+from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, matrix_residuals, model_matrices, trusted_support
+from .rounding import track_members
 from .threads import alongside
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "WindowSearch", "PerCameraNNLinker"]
@@ -663,7 +664,8 @@ class _Units:
     """
 
     def __init__(self, track: np.ndarray) -> None:
-        self._members, self._starts, self.of_keypoint = _unit_layout(np.asarray(track, np.int64))
+        track = np.asarray(track, np.int64)
+        self._members, self._starts, self.of_keypoint = _unit_layout(track, *track_members(track))
         self.sizes = np.diff(self._starts)
 
     def __len__(self) -> int:
@@ -681,37 +683,33 @@ class _Units:
 
 
 @numba.njit(cache=True)
-def _unit_layout(track):
-    """:class:`_Units`' arrays, compiled (numpy's sort, concatenations and scatter took ~0.15 ms
-    a 2 x 500 window): the members, tracks first (ids ascending, each track's keypoints in
-    keypoint order: :func:`gcn_match_ros.rounding.track_members`' order), then every keypoint in
-    no track, ascending; where each unit starts among them; each keypoint's unit.
+def _unit_layout(track, tracked, starts):
+    """:class:`_Units`' arrays from the tracks' members ``tracked`` (K,) and their starts (T + 1,)
+    (:func:`gcn_match_ros.rounding.track_members`), compiled (numpy's concatenations and scatter
+    took ~0.1 ms a 2 x 500 window): the members, the tracks' then every keypoint in no track,
+    ascending; where each unit starts among them; each keypoint's unit.
 
     Shapes: track (N,) int64, -1 = none -> (N,), (U + 1,), (N,) int64.
     """
     n = track.size
-    tracked = np.flatnonzero(track >= 0)
     members = np.empty(n, np.int64)
-    members[:tracked.size] = tracked[np.argsort(track[tracked], kind="mergesort")]
-    starts = np.empty(n + 1, np.int64)
-    units = 0
-    for k in range(tracked.size):
-        if k == 0 or track[members[k]] != track[members[k - 1]]:
-            starts[units] = k
-            units += 1
+    members[:tracked.size] = tracked
+    unit_starts = np.empty(n + 1, np.int64)
+    units = starts.size - 1
+    unit_starts[:units] = starts[:units]
     k = tracked.size
     for i in range(n):
         if track[i] < 0:
             members[k] = i
-            starts[units] = k
+            unit_starts[units] = k
             units += 1
             k += 1
-    starts[units] = n
+    unit_starts[units] = n
     of_keypoint = np.empty(n, np.int64)
     for u in range(units):
-        for k in range(starts[u], starts[u + 1]):
+        for k in range(unit_starts[u], unit_starts[u + 1]):
             of_keypoint[members[k]] = u
-    return members, starts[:units + 1], of_keypoint
+    return members, unit_starts[:units + 1], of_keypoint
 
 
 def _best_per_unit(unit: np.ndarray, lm: np.ndarray, score: np.ndarray, n_units: int, ratio: float):
@@ -812,8 +810,8 @@ def _model_support(xa, xb, fitted, bridge_xa, bridge_xb, H, Hi, F, has_h, has_f,
     gives them): residuals (M,) twice on xa <-> xb (M, 2), and whether each pair the model is
     fitted on (those of ``fitted`` (M,), then the bridge pairs (B, 2)) lies within H's threshold
     ``px`` and within F's fit threshold ``fit_px``."""
-    rh, rf = _residuals(xa, xb, H, Hi, F, has_h, has_f)
-    bh, bf = _residuals(bridge_xa, bridge_xb, H, Hi, F, has_h, has_f)
+    rh, rf = matrix_residuals(xa, xb, H, Hi, F, has_h, has_f)
+    bh, bf = matrix_residuals(bridge_xa, bridge_xb, H, Hi, F, has_h, has_f)
     n = 0
     for m in range(rh.size):
         n += fitted[m]

@@ -267,12 +267,6 @@ def test_units_are_tracks_by_id_then_lone_keypoints():
     assert units.members(np.array([3, 0, 1])).tolist() == [1, 3, 5, 0, 2]
     assert units.members(np.zeros(0, np.int64)).size == 0
     assert len(_Units(np.zeros(0, np.int64))) == 0 and len(_Units(np.full(3, -1))) == 3
-    # the tracks in rounding.track_members' order, whatever the ids
-    from gcn_match_ros.rounding import track_members
-    track = np.random.default_rng(4).integers(-1, 40, 300)
-    members, starts = track_members(track)
-    units = _Units(track)
-    assert [m.tolist() for m in units][:starts.size - 1] == [m.tolist() for m in np.split(members, starts[1:-1])]
 
 
 def test_unit_summaries_are_the_unit_vectors_along_the_members_mean():

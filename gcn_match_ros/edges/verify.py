@@ -38,7 +38,7 @@ import numpy as np
 
 from ..geometry import sampson_distance, unproject
 
-__all__ = ["PairModel", "fit_pair", "residuals", "model_matrices", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
+__all__ = ["PairModel", "fit_pair", "residuals", "model_matrices", "matrix_residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
            "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX",
            "transfer_error_px", "sampson_error_px"]
 
@@ -277,12 +277,12 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
 
     Shapes: xa, xb (M, 2) -> (M,) float64 twice.
     """
-    return _residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
+    return matrix_residuals(np.ascontiguousarray(xa, np.float64), np.ascontiguousarray(xb, np.float64),
                       *model_matrices(model))
 
 
 def model_matrices(model: PairModel):
-    """``model`` as :func:`_residuals` takes it: H, H⁻¹, F (3, 3) float64 each (zeros where
+    """``model`` as :func:`matrix_residuals` takes it: H, H⁻¹, F (3, 3) float64 each (zeros where
     missing), whether H is used (it is, with an inverse) and whether F is."""
     F, Hi = model.F, model.H_inverse
     H = None if Hi is None else model.H
@@ -292,7 +292,7 @@ def model_matrices(model: PairModel):
 
 
 @numba.njit(cache=True, nogil=True)
-def _residuals(xa, xb, H, Hi, F, has_h, has_f):
+def matrix_residuals(xa, xb, H, Hi, F, has_h, has_f):
     """:func:`residuals`' arithmetic, one pass over the pairs (a window asks for it hundreds of
     times, on a few dozen pairs each: numpy's per-call overhead was most of its cost). The
     formulas of :func:`gcn_match_ros.geometry.transfer` and
