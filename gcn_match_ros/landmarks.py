@@ -315,11 +315,9 @@ class LandmarkTracker:
         # seen again by the next camera): the identity is their model, exact and free, and F
         # would be degenerate there
         _vote_still(unit, fitted, moved, starts, ends, still, votes, checked)
-        # then models, only where a continuation is still unchecked: a camera pair's frames the
-        # same number of windows apart as last window's take that window's model first (a rig
-        # moving steadily moves alike window after window); the frame pairs it serves are voted
-        # in one compiled pass, which stops at a frame pair whose model must be refined or
-        # fitted (each fit costs about a millisecond): that one is done here, then the pass goes on
+        # then models, only where a continuation is still unchecked (docstring): the frame pairs
+        # their remembered model serves are voted in one compiled pass, which stops at one whose
+        # model must be refined or fitted; that one is done here, then the pass goes on
         keys = [self._remembered_as(int(a), int(b), int(ns)) for a, b, ns in zip(cam_a, cam_b, frame_ns)]
         remembered = [self._motion_models.get(key, (None, 0.0)) for key in keys]
         known, matrices, has_h, has_f, thresholds, shares = _packed_models(remembered)

@@ -629,7 +629,7 @@ def test_remembered_motions_vote_in_one_pass_that_stops_where_a_model_must_be_re
     fitted = np.ones(3 * n, bool)
     starts, ends = np.array([0, n, 2 * n]), np.array([n, 2 * n, 3 * n])
     still = np.zeros(3, bool)
-    no_bridge = np.zeros(4, np.int64), np.zeros((0, 2)), np.zeros((0, 2))
+    no_bridge = np.zeros(4, np.int64), np.zeros((0, 2)), np.zeros((0, 2))   # bounds, then pairs a and b
     model = fit_pair(xa[4:n], xb[4:n])
     moved_on = fit_pair(xa[4:n], xa[4:n] + [0.0, 25.0])   # a motion the third pair no longer has
     assert _enough_support(0.8, n) < 20 < _enough_support(1.0, n)   # 20 of 24 serve a model fitted at 0.8
@@ -639,8 +639,7 @@ def test_remembered_motions_vote_in_one_pass_that_stops_where_a_model_must_be_re
     assert not checked.any()
 
     def vote_from(g):
-        return _vote_remembered(g, unit, xa, xb, fitted, starts, ends, still, no_bridge[0], *no_bridge[1:],
-                                *packed, votes, checked)
+        return _vote_remembered(g, unit, xa, xb, fitted, starts, ends, still, *no_bridge, *packed, votes, checked)
 
     assert vote_from(0) == 1
     np.testing.assert_array_equal(votes[:n], np.r_[-np.ones(4), np.ones(n - 4)])
