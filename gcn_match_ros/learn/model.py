@@ -67,9 +67,10 @@ def _check_edges(edge_index: Tensor, edge_weight: Tensor, num_nodes: int) -> Non
     if edge_weight.dim() != 1 or edge_weight.shape[0] != e:
         raise ValueError(f"edge_weight: expected shape ({e},) to match edge_index (2, {e}), "
                          f"got {_fmt(tuple(edge_weight.shape))}")
-    if e and (int(edge_index.min()) < 0 or int(edge_index.max()) >= num_nodes):
-        raise ValueError(f"edge_index: node indices must lie in [0, {num_nodes}), got "
-                         f"[{int(edge_index.min())}, {int(edge_index.max())}]")
+    if e:
+        lo, hi = (int(v) for v in torch.aminmax(edge_index))
+        if lo < 0 or hi >= num_nodes:
+            raise ValueError(f"edge_index: node indices must lie in [0, {num_nodes}), got [{lo}, {hi}]")
 
 
 def _check_ptr(node_ptr: Tensor, num_nodes: int) -> None:
@@ -120,7 +121,9 @@ def gcn_norm(edge_index: Tensor, edge_weight: Tensor, num_nodes: int) -> Tuple[T
     inv_sqrt = deg.clamp(min=1e-12).rsqrt()
     nodes = torch.arange(num_nodes, device=row.device)
     out_index = torch.stack([torch.cat([row, nodes]), torch.cat([col, nodes])])
-    out_weight = torch.cat([inv_sqrt[row] * edge_weight * inv_sqrt[col], diag * inv_sqrt * inv_sqrt])
+    # index_select, not inv_sqrt[row]: the same values, ~5x faster on the CPU for these gathers
+    out_weight = torch.cat([inv_sqrt.index_select(0, row) * edge_weight * inv_sqrt.index_select(0, col),
+                            diag * inv_sqrt * inv_sqrt])
     return out_index, out_weight
 
 
@@ -136,14 +139,18 @@ def normalized_adjacency(edge_index: Tensor, edge_weight: Tensor, num_nodes: int
     index, weight = gcn_norm(edge_index, edge_weight, num_nodes)
     row, col = index[0], index[1]
     key = row * num_nodes + col  # unique: any sort gives the (row, col) order
-    # numpy's sort on the CPU: torch.argsort took 1.6 ms for a 4 x 500 window's 26 k keys, numpy 0.4
-    order = torch.from_numpy(np.argsort(key.numpy())) if key.device.type == "cpu" else torch.argsort(key)
+    # numpy's stable sort (timsort) on the CPU: the graphs come sorted by (row, col) (graph.build_graph,
+    # collate) and the diagonal after them, two runs it merges in linear time (4 x 500 window's 39 k
+    # keys: 0.08 ms; numpy's default sort 0.7, torch.argsort 1.6)
+    order = (torch.from_numpy(np.argsort(key.numpy(), kind="stable")) if key.device.type == "cpu"
+             else torch.argsort(key))
     counts = torch.bincount(row, minlength=num_nodes)
     crow = torch.zeros(num_nodes + 1, dtype=torch.int64, device=row.device)
     crow[1:] = torch.cumsum(counts, 0)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
-        return torch.sparse_csr_tensor(crow, col[order], weight[order], (num_nodes, num_nodes),
+        return torch.sparse_csr_tensor(crow, col.index_select(0, order), weight.index_select(0, order),
+                                       (num_nodes, num_nodes),
                                        check_invariants=False)
 
 
@@ -350,7 +357,7 @@ class GCN(nn.Module):
         return out
 
     def _edge_logits(self, E: Tensor, rows: Tensor, cols: Tensor, edge_x: Tensor, in_place: bool = False) -> Tensor:
-        ea, eb = E[rows], E[cols]
+        ea, eb = E.index_select(0, rows), E.index_select(0, cols)  # E[rows]: the same rows, ~5x slower
         h = torch.cat([(ea * eb).sum(1, keepdim=True), (ea - eb).abs(), edge_x.to(E.dtype)], dim=1)
         for layer in self.edge_head:
             h = h.relu_() if in_place and isinstance(layer, nn.ReLU) else layer(h)
