@@ -36,6 +36,11 @@ def test_keep_follows_the_view_pair_status():
     np.testing.assert_array_equal(geometry.agree(rows, cols), [True, False, False, False, True])
     # either order of a pair
     np.testing.assert_array_equal(geometry.keep(cols, rows, scores), geometry.keep(rows, cols, scores))
+    # what keep keeps at some score: pairs of the unverified view pair whatever they are, verified
+    # ones only where they agree
+    np.testing.assert_array_equal(geometry.may_keep(rows, cols), [True, False, True, True, True])
+    for any_scores in (np.zeros(5), np.ones(5), scores):
+        assert not (geometry.keep(rows, cols, any_scores) & ~geometry.may_keep(rows, cols)).any()
 
 
 def test_pairs_of_a_view_too_small_to_verify_are_kept_as_scored():

@@ -169,6 +169,33 @@ def test_graph_and_candidate_edges_share_each_view_pairs_best_lists(monkeypatch,
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("spec, kind", [("gcn", "sift"), ("gcn:parallel=false", "binary")])
+def test_pairs_verification_drops_whatever_their_score_are_not_scored(monkeypatch, one_torch_thread, spec, kind):
+    """The edge head scores only the candidates that verification may keep
+    (WindowGeometry.may_keep): most of a window's candidates disagree with their view pair's
+    trusted model. The published pairs and tracks are those of scoring every candidate (SIFT;
+    ORB, whose model also chains models for unverified view pairs)."""
+    import gcn_match_ros.solvers.gcn as gcn_module
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.consistency import WindowGeometry
+
+    problem = synthetic.random_scene_problem(synthetic.preset("rome16k", 4, kind), rng=2)
+    scored = []
+    real = gcn_module.edge_probabilities
+    monkeypatch.setattr(gcn_module, "edge_probabilities",
+                        lambda model, emb, es, **kw: scored.append(es.rows.shape[0]) or real(model, emb, es, **kw))
+    fewer = solvers.create(spec).solve(problem)
+    monkeypatch.setattr(WindowGeometry, "may_keep", lambda self, rows, cols: np.ones(len(rows), bool))
+    every = solvers.create(spec).solve(problem)
+    assert scored[0] < 0.5 * scored[1]
+    np.testing.assert_array_equal(fewer.track, every.track)
+    np.testing.assert_array_equal(fewer.pair_rows, every.pair_rows)
+    np.testing.assert_array_equal(fewer.pair_cols, every.pair_cols)
+    # the head's matrix products round a row by its place in a chunk: within a float32 ulp
+    np.testing.assert_allclose(fewer.pair_scores, every.pair_scores, rtol=0, atol=1e-6)
+    assert fewer.pair_rows.size > 0
+
+
 @pytest.mark.parametrize("descriptor", ["sift", "binary"])
 def test_low_texture_window_keeps_the_descriptor_matches(one_torch_thread, descriptor):
     """Views of 8 keypoints: too few for geometric verification (MIN_SEEDS), and the edge head,

@@ -116,6 +116,11 @@ class EdgeSet:
     confident: np.ndarray
     models: Dict[ViewPair, Optional[PairModel]] = dataclasses.field(default_factory=dict)
 
+    def subset(self, keep: np.ndarray) -> "EdgeSet":
+        """The edges where ``keep`` (M,) bool is True, with the same models."""
+        return EdgeSet(self.rows[keep], self.cols[keep], self.features[keep], self.res_px[keep],
+                       self.confident[keep], self.models)
+
 
 def _squash(d: np.ndarray) -> np.ndarray:
     return np.log1p(np.minimum(d, 1e3)) / np.log1p(1e3)

@@ -229,6 +229,16 @@ class WindowGeometry:
         unverified = self.unverified[self.view_index[rows], self.view_index[cols]]
         return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
 
+    def may_keep(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(M,) bool: the pairs :meth:`keep` keeps at some score — those of unverified view pairs
+        and those that :meth:`agree`; a pair outside is dropped whatever its score, so a solver
+        need not score it.
+
+        Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
+        """
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        return self.unverified[self.view_index[rows], self.view_index[cols]] | self.agree(rows, cols)
+
 
 class TrackCheck(MergeTest):
     """The ``compatible`` test of :func:`gcn_match_ros.rounding.greedy_tracks` that keeps every
