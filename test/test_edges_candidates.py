@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.edges.candidates import EDGE_FEATURES, RANK_CAP, EdgeConfig, _triangle_support, candidate_edges
+from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, EdgeConfig, _ranks, _triangle_support,
+                                            candidate_edges)
 from gcn_match_ros.descriptors import normalize_descriptors
 
 from conftest import permuted_views_problem
@@ -182,3 +183,13 @@ def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges():
     with pytest.raises(RuntimeError, match="pair 0, 1"):
         broken.result()
     assert calls == [(0, 1)]  # no pair taken after an error
+
+
+def test_rank_counts_the_strictly_better_entries_of_its_keypoints_list():
+    """A candidate's rank is how many of its keypoint's best values beat it: equal values do not
+    (the list's own entry ranks where it stands), and below the list the rank is its length."""
+    top = np.array([[0.9, 0.8, 0.5], [0.7, 0.6, 0.6]], np.float32)
+    at = np.array([0, 0, 0, 1, 1])
+    s = np.array([0.95, 0.8, 0.1, 0.6, 0.65], np.float32)
+    np.testing.assert_array_equal(_ranks(top, at, s), [0, 1, 3, 1, 1])
+    np.testing.assert_array_equal(_ranks(top, at, s), (top[at] > s[:, None]).sum(1))

@@ -317,8 +317,8 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
     g2 = np.logical_or.reduceat(guided, np.flatnonzero(first)) if key.size else np.zeros(0, bool)
     ea, eb = uniq // nb, uniq % nb
     s = sim[ea, eb]
-    rank_a = (top_r[ea] > s[:, None]).sum(1)  # exact below RANK_CAP, else >= RANK_CAP
-    rank_b = (top_c[eb] > s[:, None]).sum(1)
+    rank_a = _ranks(top_r, ea, s)  # exact below RANK_CAP, else >= RANK_CAP
+    rank_b = _ranks(top_c, eb, s)
     rat_a = cosine_distance(s) / np.maximum(np.where(rank_a == 0, cosine_distance(sec_r[ea]), cosine_distance(best_r[ea])), 1e-9)
     rat_b = cosine_distance(s) / np.maximum(np.where(rank_b == 0, cosine_distance(sec_c[eb]), cosine_distance(best_c[eb])), 1e-9)
     mutual = (rank_a == 0) & (rank_b == 0)
@@ -332,6 +332,20 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
         kind = 0.0
     return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
                           np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2), model
+
+
+@numba.njit(cache=True, nogil=True)
+def _ranks(top, at, s):
+    """How many of row ``at[m]``'s best values beat ``s[m]``: the rank of a candidate in its
+    keypoint's list. Compiled: numpy's (M, K) comparison took 0.2 ms a 4 x 500 view pair.
+
+    Shapes: top (n, K) float32, at (M,) int64, s (M,) float32 -> (M,) int64."""
+    out = np.zeros(at.shape[0], np.int64)
+    for m in range(at.shape[0]):
+        row = top[at[m]]
+        for t in range(row.shape[0]):
+            out[m] += row[t] > s[m]
+    return out
 
 
 def confident_pairs(top_r: np.ndarray, ir: np.ndarray, top_c: np.ndarray, ic: np.ndarray,
