@@ -56,7 +56,8 @@ def main(argv=None):
                     help="mix generated scenes 1:1 into the training stream: comma-separated synthetic presets "
                          "(rome16k, partial, easy), 3 or 4 views each, with SIFT-like or (--detector orb) "
                          "ORB-like binary descriptors")
-    ap.add_argument("--widths", default="32,32,64,64,64,64")
+    ap.add_argument("--widths", default="32,32,64,64,64,64", help="output width of each graph layer")
+    ap.add_argument("--edge-hidden", type=int, default=64, help="hidden width of the edge head's two layers")
     ap.add_argument("--install", action="store_true",
                     help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
     ap.add_argument("--threshold", type=float, default=0.3,
@@ -90,7 +91,7 @@ def main(argv=None):
     fc = FeatureConfig()
     kind = DETECTOR_KINDS[args.detector]
     mc = GCNConfig(in_dim=feature_dim(kind[0], fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
-                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=64, edge_k=4)
+                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=args.edge_hidden, edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
                      epipolar_weight=args.epipolar_weight,
                      val_every=max(args.steps // 4, 1), checkpoint_every=max(args.steps // 4, 1), val_size=len(val_f),
