@@ -148,7 +148,14 @@ class PairModel:
         """(M,) bool: each pair xa[m] <-> xb[m] is an inlier of the selected model: its residual
         within ``slack`` x the model's tolerance (``px`` for H, ``epipolar_px`` for F)."""
         rh, rf = residuals(self.selected(), xa, xb)
-        return (rh <= slack * self.px) if self.planar else (rf <= slack * self.epipolar_px)
+        by_h, tolerance = self.inlier_rule
+        return (rh if by_h else rf) <= slack * tolerance
+
+    @property
+    def inlier_rule(self) -> Tuple[bool, float]:
+        """(whether :meth:`agrees` reads the H residual, else the F one; the tolerance it holds
+        that residual to, before ``slack``)."""
+        return (True, self.px) if self.planar else (False, self.epipolar_px)
 
 
 def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0,
@@ -303,21 +310,35 @@ def matrix_residuals(xa, xb, H, Hi, F, has_h, has_f):
     for m in range(n):
         x, y, u, v = xa[m, 0], xa[m, 1], xb[m, 0], xb[m, 1]
         if has_h:
-            z = x * H[2, 0] + y * H[2, 1] + H[2, 2]
-            z = z if abs(z) > 1e-12 else 1e-12
-            zi = u * Hi[2, 0] + v * Hi[2, 1] + Hi[2, 2]
-            zi = zi if abs(zi) > 1e-12 else 1e-12
-            rh[m] = transfer_error_px((x * H[0, 0] + y * H[0, 1] + H[0, 2]) / z,
-                                      (x * H[1, 0] + y * H[1, 1] + H[1, 2]) / z, u, v,
-                                      (u * Hi[0, 0] + v * Hi[0, 1] + Hi[0, 2]) / zi,
-                                      (u * Hi[1, 0] + v * Hi[1, 1] + Hi[1, 2]) / zi, x, y)
+            rh[m] = h_residual(x, y, u, v, H, Hi)
         if has_f:
-            rf[m] = sampson_error_px(x * F[0, 0] + y * F[0, 1] + F[0, 2],    # F x_a: the line in b
-                                     x * F[1, 0] + y * F[1, 1] + F[1, 2],
-                                     x * F[2, 0] + y * F[2, 1] + F[2, 2],
-                                     u * F[0, 0] + v * F[1, 0] + F[2, 0],    # Fᵀ x_b: the line in a
-                                     u * F[0, 1] + v * F[1, 1] + F[2, 1], u, v)
+            rf[m] = f_residual(x, y, u, v, F)
     return rh, rf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def h_residual(x, y, u, v, H, Hi):
+    """One pair's (x, y) <-> (u, v) H residual of :func:`matrix_residuals`: the one owner of its
+    arithmetic, for callers that look each pair's model up."""
+    z = x * H[2, 0] + y * H[2, 1] + H[2, 2]
+    z = z if abs(z) > 1e-12 else 1e-12
+    zi = u * Hi[2, 0] + v * Hi[2, 1] + Hi[2, 2]
+    zi = zi if abs(zi) > 1e-12 else 1e-12
+    return transfer_error_px((x * H[0, 0] + y * H[0, 1] + H[0, 2]) / z,
+                             (x * H[1, 0] + y * H[1, 1] + H[1, 2]) / z, u, v,
+                             (u * Hi[0, 0] + v * Hi[0, 1] + Hi[0, 2]) / zi,
+                             (u * Hi[1, 0] + v * Hi[1, 1] + Hi[1, 2]) / zi, x, y)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def f_residual(x, y, u, v, F):
+    """One pair's (x, y) <-> (u, v) F residual (Sampson) of :func:`matrix_residuals`, as
+    :func:`h_residual`."""
+    return sampson_error_px(x * F[0, 0] + y * F[0, 1] + F[0, 2],    # F x_a: the line in b
+                            x * F[1, 0] + y * F[1, 1] + F[1, 2],
+                            x * F[2, 0] + y * F[2, 1] + F[2, 2],
+                            u * F[0, 0] + v * F[1, 0] + F[2, 0],    # Fᵀ x_b: the line in a
+                            u * F[0, 1] + v * F[1, 1] + F[2, 1], u, v)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
