@@ -91,7 +91,8 @@ def main(argv=None):
     fc = FeatureConfig()
     kind = DETECTOR_KINDS[args.detector]
     mc = GCNConfig(in_dim=feature_dim(kind[0], fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
-                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=args.edge_hidden, edge_k=4)
+                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=args.edge_hidden,
+                   edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
                      epipolar_weight=args.epipolar_weight,
                      val_every=max(args.steps // 4, 1), checkpoint_every=max(args.steps // 4, 1), val_size=len(val_f),

@@ -301,8 +301,9 @@ class TrackCheck(MergeTest):
 def _pairs_agree(kp, rows, cols, slot, H, Hi, F, has_h, has_f, by_h, tolerance, slack, out):
     """out[m] = whether pair (rows[m], cols[m]) agrees with the selected model of its view pair's
     slot[m] (:meth:`.verify.PairModel.agrees`: the same residuals, :func:`.verify.h_residual` and
-    :func:`.verify.f_residual`, and rule); pairs without a slot (-1) keep their out. Compiled: a window checks ~20 k candidate
-    pairs, and gathering them per view pair in numpy cost ~0.2 ms a pair.
+    :func:`.verify.f_residual`, and rule); pairs without a slot (-1) keep their out. Compiled: a
+    window checks ~20 k candidate pairs, and gathering them per view pair in numpy cost ~0.2 ms a
+    view pair.
 
     Shapes: kp (N, 2) float64; rows, cols, slot (M,) int64 (rows in the lower view); H, Hi, F
     (P, 3, 3); has_h, has_f, by_h (P,) bool; tolerance (P,); out (M,) bool, written in place."""

@@ -150,8 +150,7 @@ def normalized_adjacency(edge_index: Tensor, edge_weight: Tensor, num_nodes: int
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Sparse CSR tensor support is in beta.*")
         return torch.sparse_csr_tensor(crow, col.index_select(0, order), weight.index_select(0, order),
-                                       (num_nodes, num_nodes),
-                                       check_invariants=False)
+                                       (num_nodes, num_nodes), check_invariants=False)
 
 
 # ---------------------------------------------------------------------------
