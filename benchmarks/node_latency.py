@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcn_match_ros.experiments import describe_machine, results_header
+from gcn_match_ros.experiments import describe_machine, python_speed, results_header, speed_note
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -304,6 +304,7 @@ def main(argv=None) -> int:
     print(f"solver: {solver}{note}; {args.rate:g} Hz, {args.duration:g} s measured per configuration, "
           f"input_qos {args.input_qos}; {shm}", flush=True)
     rows = []
+    speed_before = python_speed()
     t0 = time.monotonic()
     for n_cams in args.cameras:
         for n_kp in args.keypoints:
@@ -333,10 +334,11 @@ def main(argv=None) -> int:
         verdict = (f"Goal (p95 < {1e3 * GOAL[2]:.0f} ms at {GOAL[0]} cameras x {GOAL[1]} keypoints, no drops at "
                    f"{args.rate:g} Hz): {'MET' if ok else 'NOT MET'} — p95 {1e3 * g['p95']:.1f} ms, "
                    f"{g['missing']} windows missing, node drops {_fmt_drops(g['windows_dropped'])}.")
+    seconds = time.monotonic() - t0
     header = results_header("Matcher node: end-to-end latency and throughput", __file__, argv,
                             torch_threads=torch.get_num_threads(), machine_extra=extra)
     doc = "\n".join(header) + f"""
-Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s.
+Run {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. {speed_note(speed_before, python_speed())}
 
 Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}; every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz

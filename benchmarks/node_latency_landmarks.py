@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import node_latency  # noqa: E402  (the node benchmark this one repeats)
 
-from gcn_match_ros.experiments import describe_machine, results_header  # noqa: E402
+from gcn_match_ros.experiments import describe_machine, python_speed, results_header, speed_note  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 GOAL_RATIO = 1.20
@@ -88,8 +88,10 @@ def main(argv=None) -> int:
 
     extra = node_latency.machine_extra()
     print(f"machine: {describe_machine(torch.get_num_threads(), extra)}", flush=True)
+    speed_before = python_speed()
     t0 = time.monotonic()
     rows = [compare(c, k, args, solver, env, domain) for c in args.cameras for k in args.keypoints]
+    seconds = time.monotonic() - t0
     lines = ["| cameras | keypoints/view | node compute p50 on / off [ms] | ratio | per round | "
              "of it landmark association [ms] | within the on runs | latency p50 on / off [ms] | ratio | "
              "p95 on / off [ms] |",
@@ -119,8 +121,9 @@ def main(argv=None) -> int:
     header = results_header("Matcher node: the cost of persistent landmarks (temporal association)", __file__,
                             argv, torch_threads=torch.get_num_threads(), machine_extra=extra)
     doc = "\n".join(header) + f"""
-Run {time.strftime('%Y-%m-%d %H:%M')}, {time.monotonic() - t0:.0f} s; solver `{solver}`, {args.rate:g} Hz,
+Run {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s; solver `{solver}`, {args.rate:g} Hz,
 {args.duration:g} s measured after {args.warmup:g} s of warm-up per run; {shm}.
+{speed_note(speed_before, python_speed())}
 
 Each configuration ran {args.rounds} times with the node's `landmarks` parameter off and
 {args.rounds} times on, alternating which went first; the node in its own process, frames as in

@@ -45,7 +45,7 @@ import torch
 
 from gcn_match_ros import plots, solvers
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import python_speed, results_header, speed_note
 from gcn_match_ros.stream import StreamState, solve_window
 
 REPO = Path(__file__).resolve().parents[1]
@@ -102,6 +102,7 @@ def measure(spec: str, views: int, keypoints: int, repeats: int, stream: bool) -
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     torch.set_num_threads(args.threads)
+    speed_before = python_speed()
     rows = []
     for cfg in args.configs:
         views, keypoints = (int(x) for x in cfg.lower().split("x"))
@@ -144,7 +145,7 @@ def main(argv=None) -> int:
               "also give the window's keypoints their landmarks, as the node does (stream.solve_window, the "
               "same still scene every 100 ms: every landmark continues): 'landmarks' is that association's "
               "time, outside the total (issue 13's goal: with / without <= 1.20). "
-              f"Figure: {figure.name}.\n\n"
+              f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
             + table + "\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with open(args.out, "a" if args.append else "w") as f:

@@ -11,8 +11,8 @@
   windows :data:`WINDOWS`, the loop over them :func:`pose_windows` and the count
   :func:`first_pair_tracks`.
 - Reporting: the header every results file starts with (:func:`results_header`: title, the
-  command that ran, the machine) and the F1 lead of gcn over the best other method with a
-  bootstrap interval (:func:`lead_lines`).
+  command that ran, the machine), the machine's speed when a timing ran (:func:`speed_note`)
+  and the F1 lead of gcn over the best other method with a bootstrap interval (:func:`lead_lines`).
 
 Problem names follow :func:`gcn_match_ros.data.convert.problem_name`:
 ``<dataset>_<scene>_<detector>_<views>``, e.g. ``strecha_fountain-P11_sift_4-5-6``.
@@ -24,6 +24,7 @@ import os
 import platform
 import shlex
 import sys
+import time
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
@@ -38,7 +39,7 @@ from .problem import Problem
 __all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "GEOMETRIC_DEV_SCENES",
            "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
-           "describe_machine", "command_line", "results_header"]
+           "describe_machine", "command_line", "results_header", "python_speed", "speed_note"]
 
 
 #: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
@@ -333,6 +334,24 @@ def command_line(script: Union[str, Path], argv: Optional[Sequence[str]] = None,
     args = list(sys.argv[1:] if argv is None else argv)
     prefix = [f"{k}={shlex.quote(os.environ[k])}" for k in env if k in os.environ]
     return " ".join(prefix + [launcher, shlex.join([str(shown)] + [str(a) for a in args])])
+
+
+def python_speed() -> float:
+    """Seconds a fixed pure-Python loop (10⁷ integer additions) takes now: the machine's speed at
+    the time of a timing run. This project's 2-core machine drifts within minutes (the same loop
+    0.85-1.6 s), more than many changes move a benchmark, so timing tables state it."""
+    start = time.perf_counter()
+    total = 0
+    for i in range(10_000_000):
+        total += i
+    return time.perf_counter() - start
+
+
+def speed_note(before: float, after: float) -> str:
+    """The sentence a timing table gives the machine's speed with: :func:`python_speed` before and
+    after the run."""
+    return (f"A fixed pure-Python loop (experiments.python_speed) took {before:.2f} s before the run and "
+            f"{after:.2f} s after it (lower is faster).")
 
 
 def results_header(title: str, script: Union[str, Path], argv: Optional[Sequence[str]] = None,

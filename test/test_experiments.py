@@ -10,7 +10,8 @@ from gcn_match_ros import experiments
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate
 from gcn_match_ros.experiments import (command_line, describe_machine, first_pair_tracks, images_of, lead_lines,
-                                       pose_windows, problem_files, results_header, role, split, windows)
+                                       pose_windows, problem_files, python_speed, results_header, role, speed_note,
+                                       split, windows)
 
 from conftest import rigid_motion_2d, write_oxford_like_scene
 
@@ -145,3 +146,12 @@ def test_lead_lines_of_gcn_over_the_best_other_method(lead_report):
     assert lead_lines({"methods": {"nn": report["methods"]["nn"]}}, problems, {}) == []
     assert lead_lines({"methods": {k: report["methods"][k] for k in ("gcn", "identity", "all-zero")}}, problems,
                       {}) == []
+
+
+def test_speed_note_states_the_loop_before_and_after():
+    """Timing tables state the machine's speed: a fixed pure-Python loop, measured (positive,
+    and well under a minute on any machine that runs the suite), before and after the run."""
+    seconds = python_speed()
+    assert 0 < seconds < 60
+    assert speed_note(1.0449, 1.184) == ("A fixed pure-Python loop (experiments.python_speed) took 1.04 s before "
+                                         "the run and 1.18 s after it (lower is faster).")
