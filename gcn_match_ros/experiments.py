@@ -338,8 +338,9 @@ def command_line(script: Union[str, Path], argv: Optional[Sequence[str]] = None,
 
 def python_speed() -> float:
     """Seconds a fixed pure-Python loop (10⁷ integer additions) takes now: the machine's speed at
-    the time of a timing run. This project's 2-core machine drifts within minutes (the same loop
-    0.85-1.6 s), more than many changes move a benchmark, so timing tables state it."""
+    the time of a timing run. This project's 2-core machine drifts within minutes, more than many
+    changes move a benchmark (this loop 0.37-0.59 s within an hour), so timing tables state it. A
+    coarse indicator: numeric code has also slowed while this loop did not."""
     start = time.perf_counter()
     total = 0
     for i in range(10_000_000):
