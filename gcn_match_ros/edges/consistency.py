@@ -186,20 +186,22 @@ class WindowGeometry:
     def transfers(self, a: int, b: int) -> tuple:
         """Per keypoint of views a < b (verified) what their model maps it to: planar — H x_a
         and H⁻¹ x_b (pixels, :func:`gcn_match_ros.geometry.transfer`, in (n, 3) with a zero
-        last column); else F x_a and Fᵀ x_b (lines); then whether planar and the tolerance.
+        last column); else F x_a and Fᵀ x_b (lines); then whether planar and the tolerance
+        (:attr:`.verify.PairModel.inlier_rule`).
 
         Returns: (n_a, 3), (n_b, 3) float64, bool, float.
         """
         model = self.models[(a, b)]
         xa = self.keypoints[self._offsets[a]:self._offsets[a + 1]]
         xb = self.keypoints[self._offsets[b]:self._offsets[b + 1]]
-        if model.planar:
+        planar, tolerance = model.inlier_rule
+        if planar:
             if model.H_inverse is None:  # no pair agrees with a singular H (as verify.residuals)
                 fwd, bwd = np.full_like(xa, np.nan), np.full_like(xb, np.nan)
             else:
                 fwd, bwd = transfer(model.H, xa), transfer(model.H_inverse, xb)
-            return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, model.px
-        return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, model.epipolar_px
+            return np.pad(fwd, ((0, 0), (0, 1))), np.pad(bwd, ((0, 0), (0, 1))), True, tolerance
+        return homogeneous(xa) @ model.F.T, homogeneous(xb) @ model.F, False, tolerance
 
     def in_view_order(self, rows: np.ndarray, cols: np.ndarray) -> Tuple[np.ndarray, ...]:
         """The pairs with each one's keypoint of the lower view first, and their views.
