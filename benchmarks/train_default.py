@@ -50,7 +50,7 @@ def main(argv=None):
     ap.add_argument("--out", default="/tmp/real_gcn/run")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--batch-size", type=int, default=2)
-    ap.add_argument("--edge-weight", type=float, default=1.0, help="edge head loss weight; 0: no edge head")
+    ap.add_argument("--edge-weight", type=float, default=1.0, help="edge head loss weight; 0: no edge head (unless --teacher: then it learns only the teacher's scores)")
     ap.add_argument("--epipolar-weight", type=float, default=10.0, help="epipolar loss weight on the embeddings")
     ap.add_argument("--synthetic", default="",
                     help="mix generated scenes 1:1 into the training stream: comma-separated synthetic presets "
@@ -58,6 +58,13 @@ def main(argv=None):
                          "ORB-like binary descriptors")
     ap.add_argument("--widths", default="32,32,64,64,64,64", help="output width of each graph layer")
     ap.add_argument("--edge-hidden", type=int, default=64, help="hidden width of the edge head's two layers")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of the initial weights, the problem order and the generated scenes (the shipped "
+                         "models: 0)")
+    ap.add_argument("--teacher", default="",
+                    help="checkpoint whose edge scores the edge head also learns (distillation; "
+                         "gcn_match_ros/learn/objective.py edge_distillation_loss)")
+    ap.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation term with --teacher")
     ap.add_argument("--install", action="store_true",
                     help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
     ap.add_argument("--threshold", type=float, default=0.3,
@@ -91,20 +98,21 @@ def main(argv=None):
     fc = FeatureConfig()
     kind = DETECTOR_KINDS[args.detector]
     mc = GCNConfig(in_dim=feature_dim(kind[0], fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
-                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 else 0, edge_hidden=args.edge_hidden,
+                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 or args.teacher else 0, edge_hidden=args.edge_hidden,
                    edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
-                     epipolar_weight=args.epipolar_weight,
+                     epipolar_weight=args.epipolar_weight, teacher=args.teacher,
+                     distill_weight=args.distill_weight if args.teacher else 0.0,
                      val_every=max(args.steps // 4, 1), checkpoint_every=max(args.steps // 4, 1), val_size=len(val_f),
-                     graph=GraphConfig(k=4), features=fc, progress=False, plot=False, seed=0)
-    source = ProblemFileSource(train_f, seed=0)
+                     graph=GraphConfig(k=4), features=fc, progress=False, plot=False, seed=args.seed)
+    source = ProblemFileSource(train_f, seed=args.seed)
     if args.synthetic:
         presets = tuple(args.synthetic.split(","))
         unknown = [p for p in presets if p not in synthetic.PRESETS]
         if unknown:
             raise SystemExit(f"--synthetic: unknown presets {unknown}; choose from {tuple(synthetic.PRESETS)}")
         source = InterleavedSource([source, SyntheticSource(
-            functools.partial(synthetic_scene, presets, SYNTHETIC_DESCRIPTORS[args.detector]), seed=0)])
+            functools.partial(synthetic_scene, presets, SYNTHETIC_DESCRIPTORS[args.detector]), seed=args.seed)])
     train(mc, source, ProblemFileSource(val_f, shuffle=False, cycle=False), tc, out_dir=args.out)
     best = Path(args.out) / "checkpoint.pt"
     if args.install:

@@ -192,3 +192,24 @@ def test_epipolar_gradcheck():
     for clamp in (True, False):
         assert torch.autograd.gradcheck(lambda e: epipolar_loss(e, *args, clamp_negative=clamp), (E,),
                                         eps=1e-6, atol=1e-7)
+
+
+def test_distillation_loss_known_answers():
+    from gcn_match_ros.learn.losses import distillation_loss
+
+    t = torch.tensor([-2.0, 0.0, 3.0])
+    z = t.clone().requires_grad_(True)
+    loss = distillation_loss(z, t)
+    p = torch.sigmoid(t)
+    entropy = -(p * p.log() + (1 - p) * (1 - p).log()).mean()
+    assert loss.item() == pytest.approx(entropy.item(), rel=1e-6)  # the minimum: the teacher's entropy
+    (g,) = torch.autograd.grad(loss, z)
+    torch.testing.assert_close(g, torch.zeros(3), atol=1e-7, rtol=0)
+    # elsewhere the gradient is (sigmoid(z) - p) / M, and the teacher gets none
+    z2 = torch.zeros(3, requires_grad=True)
+    t2 = t.clone().requires_grad_(True)
+    (g2,) = torch.autograd.grad(distillation_loss(z2, t2), z2)
+    torch.testing.assert_close(g2, (0.5 - p) / 3)
+    assert distillation_loss(z2, t2).grad_fn is not None and t2.grad is None
+    with pytest.raises(ValueError, match="differ in shape"):
+        distillation_loss(torch.zeros(3), torch.zeros(4))

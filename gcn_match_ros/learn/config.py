@@ -27,6 +27,10 @@ class TrainConfig(JsonConfig):
         epipolar_weight: weight of the epipolar loss (the authors: 10); only for
             problems with poses (K, R, t).
         include_identity, include_within_view: see :func:`losses.reconstruction_loss`.
+        distill_weight: weight of the edge head's distillation term
+            (:func:`objective.edge_distillation_loss`), posed problems only; 0: none.
+        teacher: checkpoint whose edge head the distillation term copies (same candidate
+            edges and node features as the model trained); required when distill_weight > 0.
         grad_clip: max global gradient norm, or None.
         val_every: validate every n steps (and at the last step).
         val_size: number of problems taken once from the validation source.
@@ -49,6 +53,8 @@ class TrainConfig(JsonConfig):
     recon_weight: float = 1.0
     epipolar_weight: float = 10.0
     edge_weight: float = 0.0  # edge-head loss (objective.edge_training_loss), posed problems only
+    distill_weight: float = 0.0
+    teacher: str = ""
     include_identity: bool = True
     include_within_view: bool = True
     grad_clip: Optional[float] = None
@@ -68,5 +74,8 @@ class TrainConfig(JsonConfig):
         for name in ("steps", "batch_size", "val_every", "checkpoint_every", "log_every", "lr_decay_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.distill_weight < 0 or (self.distill_weight > 0 and not self.teacher):
+            raise ValueError(f"TrainConfig.distill_weight={self.distill_weight} needs a teacher checkpoint "
+                             f"and must be >= 0 (teacher={self.teacher!r})")
 
 

@@ -11,6 +11,7 @@ on each graph's rows):
   with G the epipolar residual of the two keypoints under the known poses; one
   view-pair block at a time.
 - :func:`edge_loss`: the edge head's label-free loss on candidate edges of a posed problem.
+- :func:`distillation_loss`: a student edge head's logits against a teacher's probabilities.
 
 All functions are differentiable in E, work in float32 and float64, and accept
 ``view_offsets`` as a tensor, array or list of V+1 ints.
@@ -25,7 +26,7 @@ from torch import Tensor
 
 from ..geometry import essential_from_poses
 
-__all__ = ["reconstruction_loss", "epipolar_loss", "edge_loss"]
+__all__ = ["reconstruction_loss", "epipolar_loss", "edge_loss", "distillation_loss"]
 
 Offsets = Union[Tensor, Sequence[int]]
 
@@ -245,3 +246,23 @@ def edge_loss(logits: Tensor, residual_px: Tensor, tol_px: float = 1.0, span_px:
     """
     g = ((residual_px - tol_px) / span_px).clamp(0.0, 1.0).to(logits.dtype)
     return (F.softplus(-logits) + epipolar_weight * g * F.softplus(logits)).mean()
+
+
+def distillation_loss(logits: Tensor, teacher_logits: Tensor) -> Tensor:
+    r"""Binary cross-entropy of a student's edge logits against a teacher's probabilities.
+
+    .. math::
+        L = -\frac{1}{M}\sum_m p_m \log \sigma(z_m) + (1 - p_m) \log(1 - \sigma(z_m)),
+        \qquad p_m = \sigma(t_m)
+
+    Its gradient in z is (σ(z) − p) / M: zero where the student scores as the teacher, so the
+    minimum (the teacher's mean binary entropy) is reached by copying the teacher's scores,
+    calibration included. The teacher gets no gradient.
+
+    Shapes: logits (M,), teacher_logits (M,) -> ().
+    """
+    if logits.shape != teacher_logits.shape:
+        raise ValueError(f"distillation_loss: logits {tuple(logits.shape)} and teacher_logits "
+                         f"{tuple(teacher_logits.shape)} differ in shape")
+    target = torch.sigmoid(teacher_logits.detach().to(logits.dtype))
+    return F.binary_cross_entropy_with_logits(logits, target)

@@ -10,11 +10,14 @@
 Loss of one problem (the paper's, Sec. 4.2, plus the edge head's)::
 
     recon_weight · D(A + I, EEᵀ)  +  epipolar_weight · mean(EEᵀ ∘ G)  +  edge_weight · edge
-    (G and the edge term only with poses, the edge term only for models with an edge head)
+        +  distill_weight · distill
+    (G and the edge terms only with poses, the edge terms only for models with an edge head;
+    distill copies a teacher checkpoint's edge scores: :func:`edge_distillation_loss`)
 """
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import OrderedDict
 from typing import Dict, List, Optional, Sequence, Tuple
@@ -30,12 +33,13 @@ from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..node_features import FeatureConfig, calibrated_points, node_features
 from ..problem import Problem
 from ..view_pairs import by_view_pair
+from .checkpoint import load_checkpoint
 from .config import TrainConfig
-from .losses import edge_loss, epipolar_loss, reconstruction_loss
+from .losses import distillation_loss, edge_loss, epipolar_loss, reconstruction_loss
 from .model import collate, graph_tensors
 
 __all__ = ["Sample", "make_sample", "Batch", "make_batch", "TrainingObjective", "train_step", "evaluate",
-           "edge_training_inputs", "edge_training_loss"]
+           "edge_training_inputs", "edge_training_loss", "edge_distillation_loss"]
 
 
 @dataclasses.dataclass
@@ -113,27 +117,32 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
     """Forward pass and loss of one batch; the caller runs backward and the optimizer.
 
     The loss is the mean over the batch's graphs of
-    ``recon_weight · recon + epipolar_weight · epipolar + edge_weight · edge`` (the
-    epipolar and edge terms only for graphs with poses, the edge term only for models with
-    an edge head). Works under ``torch.no_grad`` too (validation).
+    ``recon_weight · recon + epipolar_weight · epipolar + edge_weight · edge
+    + distill_weight · distill`` (the epipolar and edge terms only for graphs with poses, the
+    edge terms only for models with an edge head, distill only with ``config.teacher``). Works
+    under ``torch.no_grad`` too (validation).
 
     Returns:
         ``(loss, logs)``: () tensor; logs with float ``loss``, ``recon`` (batch mean),
-        ``epipolar`` and ``edge`` (means over graphs with poses; NaN if none). The epipolar
-        term is logged even at weight 0, so runs with and without it compare on it.
+        ``epipolar``, ``edge`` and ``distill`` (means over graphs with poses; NaN if none). The
+        epipolar term is logged even at weight 0, so runs with and without it compare on it.
     """
     net = getattr(model, "module", model)  # the GCN inside a DistributedDataParallel wrapper
     if isinstance(net, TrainingObjective):
         return model(batch)  # (DDP-wrapped) objective: the loss is its forward
     use_edge_head = bool(config.edge_weight) and has_edge_head(net)
-    if net is not model and use_edge_head:
+    teacher = _teacher(config.teacher, net) if config.distill_weight and has_edge_head(net) else None
+    if net is not model and (use_edge_head or teacher is not None):
         raise ValueError("train_step: the model is a wrapped GCN with an edge head, which runs outside "
                          "GCN.forward and so outside the wrapper; wrap TrainingObjective(model, config) in "
                          "DistributedDataParallel instead")
     E_all = model(batch.x, batch.edge_index, batch.edge_weight, batch.node_ptr)
+    if teacher is not None:
+        with torch.no_grad():
+            E_teacher = teacher(batch.x, batch.edge_index, batch.edge_weight, batch.node_ptr)
     ptr = batch.node_ptr.tolist()
     total = E_all.new_zeros(())
-    recon_sum, epi_sum, n_epi, edge_sum, n_edge = 0.0, 0.0, 0, 0.0, 0
+    recon_sum, epi_sum, n_epi, edge_sum, n_edge, distill_sum, n_distill = 0.0, 0.0, 0, 0.0, 0, 0.0, 0
     for b, sample in enumerate(batch.samples):
         E = E_all[ptr[b]:ptr[b + 1]]
         ei, ew = batch.edges[b]
@@ -156,12 +165,18 @@ def train_step(model: torch.nn.Module, batch: Batch, config: TrainConfig) -> Tup
             loss = loss + config.edge_weight * edge
             edge_sum += float(edge.detach())
             n_edge += 1
+        if teacher is not None and sample.has_poses:
+            distill = edge_distillation_loss(net, E, teacher, E_teacher[ptr[b]:ptr[b + 1]], sample.problem)
+            loss = loss + config.distill_weight * distill
+            distill_sum += float(distill.detach())
+            n_distill += 1
         total = total + loss
     nb = len(batch.samples)
     total = total / nb
     logs = {"loss": float(total.detach()), "recon": recon_sum / nb,
             "epipolar": epi_sum / n_epi if n_epi else float("nan"),
-            "edge": edge_sum / n_edge if n_edge else float("nan")}
+            "edge": edge_sum / n_edge if n_edge else float("nan"),
+            "distill": distill_sum / n_distill if n_distill else float("nan")}
     return total, logs
 
 
@@ -226,3 +241,36 @@ def edge_training_loss(net: torch.nn.Module, E: Tensor, problem: Problem) -> Ten
     logits = net.score_edges(E, torch.from_numpy(es.rows), torch.from_numpy(es.cols),
                              torch.from_numpy(es.features))
     return edge_loss(logits, torch.from_numpy(np.minimum(res, 1e3)))
+
+
+def edge_distillation_loss(net: torch.nn.Module, E: Tensor, teacher: torch.nn.Module, E_teacher: Tensor,
+                           problem: Problem) -> Tensor:
+    """:func:`.losses.distillation_loss` of ``net``'s edge head against ``teacher``'s on the
+    candidate edges of one problem (those of :func:`edge_training_inputs`, which both heads
+    score): a smaller network learns the scores of a trained one, calibration included.
+
+    Shapes: E (N, out_dim) of ``net``, E_teacher (N, teacher's out_dim) -> ()."""
+    es, _ = edge_training_inputs(problem, edge_config_of(net))
+    if es.rows.shape[0] == 0:
+        return E.sum() * 0.0
+    rows, cols, features = torch.from_numpy(es.rows), torch.from_numpy(es.cols), torch.from_numpy(es.features)
+    with torch.no_grad():
+        target = teacher.score_edges(E_teacher, rows, cols, features)
+    return distillation_loss(net.score_edges(E, rows, cols, features), target)
+
+
+@functools.lru_cache(maxsize=2)
+def _load_teacher(path: str) -> torch.nn.Module:
+    teacher, _ = load_checkpoint(path)
+    return teacher.requires_grad_(False)
+
+
+def _teacher(path: str, net: torch.nn.Module) -> torch.nn.Module:
+    """The teacher checkpoint of the distillation term (loaded once, eval mode, no gradients);
+    it must score the candidate edges ``net`` is trained on, from the same node features."""
+    teacher = _load_teacher(path)
+    if not has_edge_head(teacher) or edge_config_of(teacher) != edge_config_of(net) \
+            or teacher.config.in_dim != net.config.in_dim:
+        raise ValueError(f"teacher {path}: its edge head must score the same candidate edges "
+                         f"({edge_config_of(net)}) from the same {net.config.in_dim} node features")
+    return teacher
