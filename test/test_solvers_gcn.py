@@ -52,8 +52,9 @@ def test_gcn_picks_the_shipped_model_by_descriptor_and_beats_nn_on_held_out_orb(
     assert r_sift.track.shape == (sift.n_keypoints,)
     # an explicit checkpoint is never switched, and a wrong descriptor dimension is a clear error
     fixed = solvers.create(f"gcn:checkpoint={SHIPPED_MODELS[(128, False)]}")
-    with pytest.raises(ValueError, match="260"):
+    with pytest.raises(ValueError, match="takes 128-dimensional descriptors, this window has 256-bit binary"):
         fixed.solve(orb)
+    assert fixed.checkpoint_path == str(SHIPPED_MODELS[(128, False)])
     # descriptors no shipped model was trained for are refused, not matched by the wrong model:
     # 256-D real-valued (a learned descriptor) and 128-bit binary (BRIEF-16)
     rng = np.random.default_rng(0)

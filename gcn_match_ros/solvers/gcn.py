@@ -257,11 +257,18 @@ class GCNSolver(Solver):
         """With no checkpoint setting, switch to the shipped model for this descriptor kind.
 
         Raises:
-            ValueError: no shipped model takes these descriptors (named in the message).
+            ValueError: no shipped model takes these descriptors, or the checkpoint set takes
+                descriptors of another dimension (both named in the message).
         """
-        if self.config.checkpoint or problem.n_keypoints == 0:
+        if problem.n_keypoints == 0:
             return
         kind = descriptor_kind(problem.descriptors)
+        if self.config.checkpoint:
+            takes = self.descriptor_kinds[0][0]
+            if kind[0] != takes:
+                raise ValueError(f"gcn:checkpoint={self.config.checkpoint} takes {takes}-dimensional descriptors, "
+                                 f"this window has {describe_descriptor_kind(kind)} ones")
+            return
         path = SHIPPED_MODELS.get(kind)
         if path is None or not path.is_file():
             have = ", ".join(describe_descriptor_kind(k) for k in self.descriptor_kinds) or "none"
