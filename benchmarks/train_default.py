@@ -50,7 +50,9 @@ def main(argv=None):
     ap.add_argument("--out", default="/tmp/real_gcn/run")
     ap.add_argument("--steps", type=int, default=600)
     ap.add_argument("--batch-size", type=int, default=2)
-    ap.add_argument("--edge-weight", type=float, default=1.0, help="edge head loss weight; 0: no edge head (unless --teacher: then it learns only the teacher's scores)")
+    ap.add_argument("--edge-weight", type=float, default=1.0,
+                    help="edge head loss weight; 0: no edge head (unless --teacher: then it learns only the "
+                         "teacher's scores)")
     ap.add_argument("--epipolar-weight", type=float, default=10.0, help="epipolar loss weight on the embeddings")
     ap.add_argument("--synthetic", default="",
                     help="mix generated scenes 1:1 into the training stream: comma-separated synthetic presets "
@@ -64,12 +66,13 @@ def main(argv=None):
     ap.add_argument("--teacher", default="",
                     help="checkpoint whose edge scores the edge head also learns (distillation; "
                          "gcn_match_ros/learn/objective.py edge_distillation_loss)")
-    ap.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation term with --teacher")
+    ap.add_argument("--distill-weight", type=float, default=1.0,
+                    help="weight of the distillation term with --teacher (the shipped default.pt: 16)")
     ap.add_argument("--install", action="store_true",
                     help="copy the result to the shipped model file of its descriptor kind (solvers.gcn.SHIPPED_MODELS)")
     ap.add_argument("--threshold", type=float, default=0.3,
-                    help="rounding threshold stored with the model (models/README.md: 0.2 for default.pt, "
-                         "chosen by real validation F1; 0.3 for orb.pt, chosen on generated validation scenes)")
+                    help="rounding threshold stored with the model (models/README.md: 0.5 for default.pt and 0.6 "
+                         "for orb.pt, chosen on geometric precision)")
     ap.add_argument("--chained-models", choices=("true", "false"), default="false",
                     help="whether gcn fits chained models for view pairs without a trusted one with this model "
                          "(stored with it; models/README.md: true for orb.pt)")
@@ -97,9 +100,9 @@ def main(argv=None):
     widths = tuple(int(w) for w in args.widths.split(","))
     fc = FeatureConfig()
     kind = DETECTOR_KINDS[args.detector]
+    edge_head = args.edge_weight > 0 or bool(args.teacher)
     mc = GCNConfig(in_dim=feature_dim(kind[0], fc), widths=widths, out_dim=32, skip_layers=(len(widths),),
-                   edge_features=len(EDGE_FEATURES) if args.edge_weight > 0 or args.teacher else 0, edge_hidden=args.edge_hidden,
-                   edge_k=4)
+                   edge_features=len(EDGE_FEATURES) if edge_head else 0, edge_hidden=args.edge_hidden, edge_k=4)
     tc = TrainConfig(steps=args.steps, batch_size=args.batch_size, lr=1e-3, edge_weight=args.edge_weight,
                      epipolar_weight=args.epipolar_weight, teacher=args.teacher,
                      distill_weight=args.distill_weight if args.teacher else 0.0,
