@@ -10,7 +10,8 @@ bootstrap interval of its mean, and how many pairs B won.
 
 Each solver keeps its own :class:`gcn_match_ros.stream.StreamState` (rig memory, landmarks), as
 the node does, and solves the same synthetic window (``synthetic.rome16k``, SIFT-like, the
-cameras named) every 100 ms of stream time, as stage_breakdown.py's stream rows.
+cameras named: ``stage_breakdown.rig_window``) every 100 ms of stream time, as stage_breakdown.py's
+stream rows.
 
 Usage::
 
@@ -29,10 +30,12 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
-from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 from gcn_match_ros.experiments import python_speed, results_header, speed_note
 from gcn_match_ros.metrics import paired_bootstrap
 from gcn_match_ros.stream import StreamState, solve_window
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stage_breakdown import rig_window  # noqa: E402  (the same window as its stream rows)
 
 REPO = Path(__file__).resolve().parents[1]
 #: stages reported next to the total (gcn_match_ros.timing)
@@ -55,8 +58,7 @@ def paired_solves(spec_a: str, spec_b: str, views: int, keypoints: int, pairs: i
     """Wall seconds and stage seconds of ``pairs`` alternating solve_window calls of each solver.
 
     Returns: {"a" | "b": {"total": (pairs,) array, stage: (pairs,) array}}."""
-    problem = random_scene_problem(rome16k(views, n_points=keypoints), rng=0)
-    problem.camera_ids = tuple(f"cam{v}" for v in range(views))
+    problem = rig_window(views, keypoints)
     made = {"a": (solvers.create(spec_a), StreamState()), "b": (solvers.create(spec_b), StreamState())}
     for solver, state in made.values():
         for w in range(WARMUP):

@@ -69,9 +69,16 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def measure(spec: str, views: int, keypoints: int, repeats: int, stream: bool) -> dict:
+def rig_window(views: int, keypoints: int):
+    """The synthetic window these timings solve (``synthetic.rome16k``, SIFT-like, seed 0), its
+    cameras named as a rig's so that a stream keeps their memory."""
     problem = random_scene_problem(rome16k(views, n_points=keypoints), rng=0)
     problem.camera_ids = tuple(f"cam{v}" for v in range(views))
+    return problem
+
+
+def measure(spec: str, views: int, keypoints: int, repeats: int, stream: bool) -> dict:
+    problem = rig_window(views, keypoints)
     solver = solvers.create(spec)
     state = StreamState() if stream else None
     # warm-up: model load, first-call allocations (and the first fits, the first landmarks)
