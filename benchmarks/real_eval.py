@@ -44,7 +44,8 @@ def main(argv=None):
     ap.add_argument("--data-root", default=str(DATA_ROOT))
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real_eval.md"))
     ap.add_argument("--detectors", default="", help="default sift,orb (--quick: sift)")
-    ap.add_argument("--methods", default="", help="comma-separated; default: all solvers + " + ",".join(EXTRA))
+    ap.add_argument("--methods", default="", help="comma-separated, or separated by ';' when a spec has several "
+                    "settings (gcn:verify=false,threshold=0.3); default: all solvers + " + ",".join(EXTRA))
     ap.add_argument("--all-windows", action="store_true",
                     help="every window of every scene, not the fixed subsample of experiments.windows()")
     ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")
@@ -55,7 +56,8 @@ def main(argv=None):
                          "problems are made into <problem folder>_photometric")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    methods = args.methods.split(",") if args.methods else solvers.available_solvers() + EXTRA
+    methods = (args.methods.split(";" if ";" in args.methods else ",") if args.methods
+               else solvers.available_solvers() + EXTRA)
     scenes = [f"oxford/{s}" for s in OXFORD] + [f"strecha/{s}" for s in STRECHA]
     out = results_header("Real-scene evaluation", __file__, argv, torch_threads=1) + [
         "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",
