@@ -243,8 +243,8 @@ class WindowGeometry:
     def keep(self, rows: np.ndarray, cols: np.ndarray, scores: np.ndarray) -> np.ndarray:
         """(M,) bool: the pairs a solver may publish (module docstring)."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        unverified = self.unverified[self.view_index[rows], self.view_index[cols]]
-        return np.where(unverified, np.asarray(scores) >= self.unverified_threshold, self.agree(rows, cols))
+        return np.where(self._in_unverified(rows, cols), np.asarray(scores) >= self.unverified_threshold,
+                        self.agree(rows, cols))
 
     def may_keep(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """(M,) bool: the pairs :meth:`keep` keeps at some score — those of unverified view pairs
@@ -254,7 +254,11 @@ class WindowGeometry:
         Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
         """
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        return self.unverified[self.view_index[rows], self.view_index[cols]] | self.agree(rows, cols)
+        return self._in_unverified(rows, cols) | self.agree(rows, cols)
+
+    def _in_unverified(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(M,) bool: the pair's view pair is unverified (:attr:`unverified`)."""
+        return self.unverified[self.view_index[rows], self.view_index[cols]]
 
 
 class TrackCheck(MergeTest):
