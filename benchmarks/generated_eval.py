@@ -68,8 +68,8 @@ def main(argv=None) -> int:
     lines = results_header("Solver settings on generated scenes", __file__, argv, torch_threads=1,
                            env=("OPENBLAS_NUM_THREADS",))
     lines += [f"Generated windows (data.synthetic presets, SIFT-like descriptors), {args.seeds} a preset and size "
-              f"(seeds [11, {args.first_seed}..{args.first_seed + args.seeds - 1}]); mean F1 / precision against the exact labels; change: F1 "
-              f"against {specs[0]}.", "",
+              f"(seeds [11, {args.first_seed}..{args.first_seed + args.seeds - 1}]); mean F1 / precision against the "
+              f"exact labels; change: F1 against {specs[0]}.", "",
               "| preset | views | method | F1 | P | change |", "|---|---|---|---|---|---|"]
     for preset, views, m, f1, p in rows:
         lines.append(f"| {preset} | {views} | {m} | {f1:.4f} | {p:.4f} | {f1 - reference[(preset, views)]:+.4f} |")
