@@ -84,16 +84,20 @@ def main(argv=None):
                     help="the threshold of windows whose every trusted two-view model is a homography (stored "
                          "with the model; default: the one already stored with it, if any; models/README.md: the "
                          "validation-F1 choices, 0.2 for default.pt and 0.3 for orb.pt)")
+    ap.add_argument("--planar-ratio", type=float, default=None,
+                    help="the share of F's seeds a homography must explain for a view pair to be planar (stored "
+                         "with the model; default: the one already stored with it, if any, else "
+                         "edges.verify.PLANAR_RATIO; models/README.md: 0.7 for orb.pt)")
     ap.add_argument("--restamp", action="store_true",
-                    help="only store --threshold, --planar-threshold, --chained-models and --graph-normalization in "
-                         "the shipped model of --detector (weights unchanged; all are chosen after training: "
-                         "models/README.md)")
+                    help="only store --threshold, --planar-threshold, --planar-ratio, --chained-models and "
+                         "--graph-normalization in the shipped model of --detector (weights unchanged; all are chosen "
+                         "after training: models/README.md)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.restamp:
         target = SHIPPED_MODELS[DETECTOR_KINDS[args.detector]]
         _install(target, target, args.threshold, args.chained_models == "true", args.graph_normalization,
-                 args.planar_threshold)
+                 args.planar_threshold, args.planar_ratio)
         return
     train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
@@ -120,19 +124,21 @@ def main(argv=None):
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true",
-                 args.graph_normalization, args.planar_threshold)
+                 args.graph_normalization, args.planar_threshold, args.planar_ratio)
 
 
 def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool,
-             graph_normalization: Optional[str] = None, planar_threshold: Optional[float] = None) -> None:
+             graph_normalization: Optional[str] = None, planar_threshold: Optional[float] = None,
+             planar_ratio: Optional[float] = None) -> None:
     """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``,
-    ``chained_models``, ``graph_normalization`` and ``planar_threshold`` (None: the one
-    ``checkpoint`` stores, if any) to ``target`` (atomically: save_checkpoint). A restamp of the
-    threshold alone thus keeps the shipped models' other choices."""
+    ``chained_models``, ``graph_normalization``, ``planar_threshold`` and ``planar_ratio`` (None:
+    the one ``checkpoint`` stores, if any) to ``target`` (atomically: save_checkpoint). A restamp
+    of the threshold alone thus keeps the shipped models' other choices."""
     model, meta = load_checkpoint(checkpoint)
     stored = meta["config"].get("solver") or {}
     solver = {"threshold": threshold, "chained_models": chained_models}
-    for name, value in (("graph_normalization", graph_normalization), ("planar_threshold", planar_threshold)):
+    for name, value in (("graph_normalization", graph_normalization), ("planar_threshold", planar_threshold),
+                        ("planar_ratio", planar_ratio)):
         value = stored.get(name) if value is None else value
         if value is not None:
             solver[name] = value

@@ -148,6 +148,12 @@ def test_edge_config_fits_and_trusts_with_its_own_settings():
     assert trusted is not None and trusted.H is None and trusted.F is not None  # F selected
     assert EdgeConfig(min_inliers=len(xa) + 1).trusted(model) is None
     assert EdgeConfig().trusted(None) is None
+    from test_edges_verify import _plane_and_off_plane_pairs
+
+    xa, xb = _plane_and_off_plane_pairs(np.random.default_rng(5))
+    assert not EdgeConfig().fit(xa, xb).planar and EdgeConfig(planar_ratio=0.7).fit(xa, xb).planar
+    with pytest.raises(ValueError, match="planar_ratio"):
+        EdgeConfig(planar_ratio=0.0)
 
 
 def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges():

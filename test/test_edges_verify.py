@@ -11,11 +11,16 @@ H_TRUE = np.array([[1.1, 0.05, 12.0], [-0.03, 0.95, -7.0], [2e-4, -1e-4, 1.0]])
 K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
 
 
-def _non_planar_pairs(rng, n=60):
-    """Pixels of n points of a 6 m cube in two cameras 20 deg apart, and their true F."""
-    R_a, t_a = look_at(np.array([0.0, -10, 0.5]), np.zeros(3))
+def _two_cameras():
+    """(R_a, t_a, R_b, t_b): two cameras 10 m from the origin, 20 deg apart, looking at it."""
     angle = np.radians(20)
-    R_b, t_b = look_at(np.array([10 * np.sin(angle), -10 * np.cos(angle), 1.0]), np.zeros(3))
+    return (*look_at(np.array([0.0, -10, 0.5]), np.zeros(3)),
+            *look_at(np.array([10 * np.sin(angle), -10 * np.cos(angle), 1.0]), np.zeros(3)))
+
+
+def _non_planar_pairs(rng, n=60):
+    """Pixels of n points of a 6 m cube in the two cameras, and their true F."""
+    R_a, t_a, R_b, t_b = _two_cameras()
     X = rng.uniform(-3, 3, (n, 3))
     xa, xb = geometry.project(K, R_a, t_a, X)[0], geometry.project(K, R_b, t_b, X)[0]
     return xa, xb, geometry.fundamental_from_poses(K, R_a, t_a, K, R_b, t_b)
@@ -44,6 +49,25 @@ def test_points_of_a_3d_scene_give_a_fundamental_matrix():
     F, G = model.F / np.linalg.norm(model.F), F_true / np.linalg.norm(F_true)
     np.testing.assert_allclose(F * np.sign(np.sum(F * G)), G, atol=1e-5)  # the same F, up to scale
     assert model.selected().H is None
+
+
+def _plane_and_off_plane_pairs(rng):
+    """Pixels of 30 points of a plane and 10 points 2 m off it in the two cameras."""
+    R_a, t_a, R_b, t_b = _two_cameras()
+    plane = np.c_[rng.uniform(-3, 3, 30), np.zeros(30), rng.uniform(-3, 3, 30)]
+    off = np.c_[rng.uniform(-3, 3, 10), rng.choice([-2.0, 2.0], 10), rng.uniform(-3, 3, 10)]
+    X = np.vstack([plane, off])
+    return geometry.project(K, R_a, t_a, X)[0], geometry.project(K, R_b, t_b, X)[0]
+
+
+def test_planar_ratio_decides_for_a_plane_with_a_few_points_off_it():
+    """30 points of a plane and 10 well off it: H explains 3/4 of the seeds F explains, so the
+    pair is planar at a ratio of 0.7 and not at the default 0.8."""
+    xa, xb = _plane_and_off_plane_pairs(np.random.default_rng(5))
+    default = fit_pair(xa, xb)
+    assert default is not None and not default.planar and default.inliers_f == 40 and default.inliers_h == 30
+    lower = fit_pair(xa, xb, planar_ratio=0.7)
+    assert lower is not None and lower.planar and lower.inliers == 30
 
 
 def test_too_few_seeds_give_no_model():

@@ -137,6 +137,23 @@ def test_chained_models_follow_the_model_unless_set():
     assert solvers.create("gcn:chained_models=true").chained_models is True
 
 
+def test_planar_ratio_follows_the_model_unless_set():
+    """The shipped ORB model stores a lower H-vs-F ratio (its noisy seeds of a plane make F
+    degenerate, models/README.md); the SIFT model keeps verify.PLANAR_RATIO. The candidate edges
+    are fitted with the ratio the solver resolves."""
+    from gcn_match_ros.edges.verify import PLANAR_RATIO
+
+    solver = solvers.create("gcn")
+    assert "planar_ratio" not in load_checkpoint(SHIPPED_MODELS[(128, False)])[1]["config"]["solver"]
+    assert solver.planar_ratio == PLANAR_RATIO and solver.edge_config.planar_ratio == PLANAR_RATIO
+    solver._use(str(SHIPPED_MODELS[(256, True)]))
+    stored = load_checkpoint(SHIPPED_MODELS[(256, True)])[1]["config"]["solver"]["planar_ratio"]
+    assert stored < PLANAR_RATIO and solver.planar_ratio == stored and solver.edge_config.planar_ratio == stored
+    assert solvers.create("gcn:planar_ratio=0.9").edge_config.planar_ratio == 0.9
+    with pytest.raises(ValueError, match="planar_ratio"):
+        solvers.create("gcn:planar_ratio=0")
+
+
 def test_graph_normalization_follows_the_model_unless_set():
     """The shipped models build their graph from the candidate edges' RootSIFT similarities
     (models/README.md), a checkpoint without that choice from the graph it was trained on."""

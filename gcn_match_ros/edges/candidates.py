@@ -39,7 +39,8 @@ from ..problem import Problem
 from ..similarity import DescriptorSimilarity
 from ..timing import stage
 from .rig_memory import RigMemory
-from .verify import EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
+from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel, fit_pair,
+                     residuals)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
            "EDGE_FEATURES", "RANK_CAP"]
@@ -60,7 +61,9 @@ class EdgeConfig(JsonConfig):
     (:meth:`.verify.PairModel.trusted`; 0, 0: any fitted model, the classic RANSAC
     baseline); essential: fit an essential matrix where the problem has intrinsics;
     epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels); fine_px:
-    the threshold tried first, kept for sub-pixel keypoints (:func:`.verify.fit_pair`; 0: off)."""
+    the threshold tried first, kept for sub-pixel keypoints (:func:`.verify.fit_pair`; 0: off);
+    planar_ratio: a view pair is planar when H explains at least this share of what F explains
+    (:func:`.verify.fit_pair`)."""
 
     k: int = 4
     geometry: bool = True
@@ -73,10 +76,13 @@ class EdgeConfig(JsonConfig):
     essential: bool = True
     epipolar_px: float = EPIPOLAR_PX
     fine_px: float = FINE_PX
+    planar_ratio: float = PLANAR_RATIO
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
+        if not 0.0 < self.planar_ratio <= 1.0:
+            raise ValueError(f"EdgeConfig.planar_ratio must be in (0, 1], got {self.planar_ratio}")
 
     def fit(self, xa: np.ndarray, xb: np.ndarray, K_a: Optional[np.ndarray] = None,
             K_b: Optional[np.ndarray] = None) -> Optional[PairModel]:
@@ -88,7 +94,8 @@ class EdgeConfig(JsonConfig):
         """
         if not self.essential:
             K_a = K_b = None
-        return fit_pair(xa, xb, K_a=K_a, K_b=K_b, epipolar_px=self.epipolar_px, fine_px=self.fine_px)
+        return fit_pair(xa, xb, K_a=K_a, K_b=K_b, epipolar_px=self.epipolar_px, fine_px=self.fine_px,
+                        planar_ratio=self.planar_ratio)
 
     def trusted(self, model: Optional[PairModel]) -> Optional[PairModel]:
         """``model`` with its selected H or F only when these settings trust its support

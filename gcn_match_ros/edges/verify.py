@@ -57,7 +57,10 @@ ESSENTIAL_MAX_ITERS = 1000  # OpenCV's default for the essential matrix
 #: [AGREE_MIN_PX, the fit's threshold]: ~1 px for SIFT on real images (well inside the 2 px
 #: a match may be off the true lines), up to 2 px for noisier keypoints.
 AGREE_SIGMAS, AGREE_MIN_PX = 3.0, 1.0
-PLANAR_RATIO = 0.8      # H inliers >= this x F inliers: the pair is treated as planar
+#: H inliers >= this x F inliers: the pair is treated as planar. A model may store another
+#: (EdgeConfig.planar_ratio): F fitted to noisy seeds of a plane is degenerate (F = [e']x H for any
+#: epipole e', which then catches outliers and off-H noise; benchmarks/results/planar_dev.md).
+PLANAR_RATIO = 0.8
 MIN_INLIERS = 15        # a trusted model explains at least this many seeds ...
 MIN_INLIER_RATIO = 0.4  # ... making at least this share of them
 #: OpenCV's USAC with local optimisation for F and E: ~5x faster than USAC_MAGSAC on our seeds
@@ -161,7 +164,7 @@ class PairModel:
 def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 0,
              K_a: Optional[np.ndarray] = None, K_b: Optional[np.ndarray] = None,
              epipolar_px: float = EPIPOLAR_PX, estimator: int = EPIPOLAR_ESTIMATOR,
-             max_iters: int = 2000, fine_px: float = 0.0) -> Optional[PairModel]:
+             max_iters: int = 2000, fine_px: float = 0.0, planar_ratio: float = PLANAR_RATIO) -> Optional[PairModel]:
     """H and F (each None if it fails) from seed pairs xa[i] <-> xb[i] (pixels); None when
     neither fits. With both intrinsics K_a, K_b (3, 3) the epipolar model is an essential
     matrix (module docstring). ``px``, ``epipolar_px``: the inlier thresholds of H and F;
@@ -169,7 +172,8 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     with at most :data:`FINE_MAX_ITERS` iterations (module docstring; 0 or >= ``epipolar_px``:
     not tried); ``estimator``: OpenCV's method for F or E (MAGSAC follows it where an E is
     degenerate); ``max_iters``: RANSAC iterations of H and of F from pixels (fewer bound the
-    cost and find only models of high inlier shares).
+    cost and find only models of high inlier shares); ``planar_ratio``: the pair is planar (H
+    selected) when H explains at least this share of the seeds F explains within ``epipolar_px``.
 
     Shapes: xa, xb (S, 2).
     """
@@ -211,7 +215,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     fit_px = fine_px if fine else epipolar_px
     # H against F on equal terms: the seeds F explains within epipolar_px, whatever it was fitted at
     nf_at_epipolar_px = int((res <= epipolar_px).sum()) if fine else nf
-    planar = H is not None and (F is None or nh >= PLANAR_RATIO * nf_at_epipolar_px)
+    planar = H is not None and (F is None or nh >= planar_ratio * nf_at_epipolar_px)
     if not planar and F is None:
         return None
     agree_px = fit_px

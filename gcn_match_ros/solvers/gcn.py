@@ -26,7 +26,7 @@ from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_t
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
-from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS
+from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, PLANAR_RATIO
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
@@ -124,6 +124,11 @@ class GCNSolverConfig(SolverConfig):
             precision-first ``threshold`` guards against pass. < 0: ``threshold`` when that is set,
             else the loaded model's choice (``config["solver"]["planar_threshold"]``: its
             validation-F1 threshold, models/README.md), else ``threshold``.
+        planar_ratio: a view pair's two-view model is the homography when it explains at least
+            this share of the seeds the fundamental matrix explains (:func:`gcn_match_ros.edges.verify.fit_pair`).
+            < 0: the loaded model's choice (``config["solver"]["planar_ratio"]``: 0.7 for the shipped
+            ORB model, whose noisy seeds of a plane make the fundamental matrix degenerate;
+            models/README.md), else :data:`gcn_match_ros.edges.verify.PLANAR_RATIO`.
         support_threshold: with ``verify``, a track of two that at least
             :data:`gcn_match_ros.edges.support.MIN_EXPECTED` other views verified against both
             of its views should show, yet none joined, is kept only when its pair scores at
@@ -155,6 +160,7 @@ class GCNSolverConfig(SolverConfig):
     min_shared_neighbours: int = MIN_SHARED
     prefer_localised: bool = True
     planar_threshold: float = -1.0
+    planar_ratio: float = -1.0
     support_threshold: float = 0.0
     parallel: bool = True
 
@@ -168,6 +174,8 @@ class GCNSolverConfig(SolverConfig):
             value = getattr(self, name)
             if not (0.0 <= value <= 1.0 or value == -1.0):
                 raise ValueError(f"{name} must be in [0, 1] (or -1: the model's choice), got {value}")
+        if not (0.0 < self.planar_ratio <= 1.0 or self.planar_ratio == -1.0):
+            raise ValueError(f"planar_ratio must be in (0, 1] (or -1: the model's choice), got {self.planar_ratio}")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         for name in ("unverified_threshold", "support_threshold"):
@@ -297,9 +305,17 @@ class GCNSolver(Solver):
     @property
     def edge_config(self) -> EdgeConfig:
         """The candidate edges the loaded model was trained on, with this solver's epipolar
-        fit thresholds."""
+        fit thresholds and H-vs-F choice (:attr:`planar_ratio`)."""
         return dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px,
-                                   fine_px=self.config.epipolar_fine_px)
+                                   fine_px=self.config.epipolar_fine_px, planar_ratio=self.planar_ratio)
+
+    @property
+    def planar_ratio(self) -> float:
+        """The planar_ratio setting, else the loaded model's choice, else
+        :data:`gcn_match_ros.edges.verify.PLANAR_RATIO`."""
+        if self.config.planar_ratio > 0:
+            return self.config.planar_ratio
+        return float(self._model_choice("planar_ratio", PLANAR_RATIO))
 
     def describe(self) -> str:
         base = super().describe()
