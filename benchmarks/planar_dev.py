@@ -10,8 +10,8 @@ This makes one: each of the Strecha training images fountain-P11 and entry-P10 0
 (ORB and SIFT 500, consecutive windows of 3, 4 and 6 views, labels by the exact homographies).
 
 It reports, per detector, every method's F1 / precision, and a census of the windows' trusted
-two-view models (edges.candidates.candidate_edges with the default EdgeConfig, before any
-chained model): how many windows have a homography for every view pair (what
+two-view models (edges.candidates.candidate_edges with the default EdgeConfig, so the H-vs-F
+ratio edges.verify.PLANAR_RATIO whatever a model stores, before any chained model): how many windows have a homography for every view pair (what
 WindowGeometry.one_plane asks), how many hold a trusted fundamental matrix — on a plane a
 degenerate model, F = [e']x H for any epipole e' — and how many a view pair without a trusted
 model. Those windows are merged at the precision-first threshold instead of the planar one.
@@ -92,8 +92,9 @@ def main(argv=None) -> int:
                            torch_threads=1, env=("OPENBLAS_NUM_THREADS",)) + [
         f"{len(scenes)} sequences of 6 views made from fountain-P11 and entry-P10 images 0000-0005 (training "
         "images of both models); 500 keypoints; windows of 3, 4, 6 consecutive views; labels by the exact "
-        "homographies (true < 3 px, false > 10 px). Census: each window's trusted two-view models before "
-        "chaining (planar: a homography for every view pair, what one-plane windows need)."]
+        "homographies (true < 3 px, false > 10 px). Census: each window's trusted two-view models at the "
+        "default H-vs-F ratio (edges.verify.PLANAR_RATIO), before chaining (planar: a homography for every view "
+        "pair, what one-plane windows need)."]
     for det in args.detectors.split(","):
         folder = args.data / det
         folder.mkdir(parents=True, exist_ok=True)
