@@ -11,12 +11,13 @@ This makes one: each of the Strecha training images fountain-P11 and entry-P10 0
 
 It reports, per detector, every method's F1 / precision, and a census of the windows' trusted
 two-view models (edges.candidates.candidate_edges with the default EdgeConfig, so the H-vs-F
-ratio edges.verify.PLANAR_RATIO whatever a model stores, before any chained model): how many windows have a homography for every view pair (what
-WindowGeometry.one_plane asks), how many hold a trusted fundamental matrix — on a plane a
-degenerate model, F = [e']x H for any epipole e' — and how many a view pair without a trusted
-model. Those windows are merged at the precision-first threshold instead of the planar one.
+ratio edges.verify.PLANAR_RATIO whatever a model stores, before any chained model): how many
+windows have a homography for every view pair (what WindowGeometry.one_plane asks), how many
+hold a trusted fundamental matrix — on a plane a degenerate model, F = [e']x H for any epipole
+e' — and how many a view pair without a trusted model. Those windows are merged at the
+precision-first threshold instead of the planar one.
 
-    OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/planar_dev.py        # ~2 min on 2 cores
+    OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/planar_dev.py        # ~1 min on 2 cores
 """
 from __future__ import annotations
 
