@@ -50,6 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--windows", type=int, default=25, help="windows a mode a round")
     ap.add_argument("--spin-ms", type=float, nargs="*", default=[10.0, 30.0],
                     help="busy-wait before each paced window, ms (one mode each)")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads (the node: 2)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "idle_wake.md")
     return ap
 
@@ -81,7 +82,7 @@ def timed_windows(solver, problem, state: StreamState, n: int, stamp: int, pace_
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    torch.set_num_threads(2)  # as the node (gcn_match_ros.threads shares the cores out)
+    torch.set_num_threads(args.threads)
     views, keypoints = (int(x) for x in args.config.lower().split("x"))
     problem = rig_window(views, keypoints)
     solver, state = solvers.create(args.solver), StreamState()
@@ -109,7 +110,7 @@ def main(argv=None) -> int:
                      f"{np.percentile(t, 95):.1f} | {t.max():.1f} | {np.mean(t > 1e3 * SLOW * base):.0%} | "
                      f"{spin / pace if pace else 0:.2f} |")
     header = results_header("Idling between windows: solve time back to back and at 10 Hz", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=2, env=("OPENBLAS_NUM_THREADS",))
+                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads, env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\nRun {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. "
             f"{speed_note(speed_before, python_speed())}\n\n"
             f"{views} x {keypoints} (synthetic.rome16k, the same window each time, one StreamState, landmarks "
