@@ -32,7 +32,7 @@ from gcn_match_ros.learn.model import GCNConfig
 from gcn_match_ros.learn.sources import InterleavedSource, ProblemFileSource, SyntheticSource
 from gcn_match_ros.learn.train import train
 from gcn_match_ros.node_features import FeatureConfig, feature_dim
-from gcn_match_ros.solvers.gcn import SHIPPED_MODELS
+from gcn_match_ros.solvers.gcn import GCNSolverConfig, SHIPPED_MODELS
 
 
 def synthetic_scene(presets, descriptor_kind, rng):
@@ -142,6 +142,7 @@ def _install(checkpoint: Path, target: Path, threshold: float, chained_models: b
         value = stored.get(name) if value is None else value
         if value is not None:
             solver[name] = value
+    GCNSolverConfig(**solver)  # the solver's own range checks: refuse a setting no solve could use
     save_checkpoint(target, model, dict(meta["config"], solver=solver), {"step": int(meta["extra"].get("step", 0))})
     print("installed", target, "solver settings", solver)
 

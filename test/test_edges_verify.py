@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gcn_match_ros import geometry
-from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, fit_pair, residuals
+from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, check_planar_ratio, fit_pair, residuals
 
 from conftest import look_at
 
@@ -68,6 +68,14 @@ def test_planar_ratio_decides_for_a_plane_with_a_few_points_off_it():
     assert default is not None and not default.planar and default.inliers_f == 40 and default.inliers_h == 30
     lower = fit_pair(xa, xb, planar_ratio=0.7)
     assert lower is not None and lower.planar and lower.inliers == 30
+
+
+def test_check_planar_ratio_takes_shares_in_zero_to_one():
+    for ratio in (1e-3, 0.7, 1.0):
+        check_planar_ratio(ratio)
+    for ratio in (0.0, -0.5, 1.01, float("nan")):
+        with pytest.raises(ValueError, match="EdgeConfig.planar_ratio must be in"):
+            check_planar_ratio(ratio, "EdgeConfig.planar_ratio")
 
 
 def test_too_few_seeds_give_no_model():

@@ -39,8 +39,8 @@ from ..problem import Problem
 from ..similarity import DescriptorSimilarity
 from ..timing import stage
 from .rig_memory import RigMemory
-from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel, fit_pair,
-                     residuals)
+from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
+                     check_planar_ratio, fit_pair, residuals)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
            "EDGE_FEATURES", "RANK_CAP"]
@@ -81,8 +81,7 @@ class EdgeConfig(JsonConfig):
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
             raise ValueError(f"EdgeConfig.normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
-        if not 0.0 < self.planar_ratio <= 1.0:
-            raise ValueError(f"EdgeConfig.planar_ratio must be in (0, 1], got {self.planar_ratio}")
+        check_planar_ratio(self.planar_ratio, "EdgeConfig.planar_ratio")
 
     def fit(self, xa: np.ndarray, xb: np.ndarray, K_a: Optional[np.ndarray] = None,
             K_b: Optional[np.ndarray] = None) -> Optional[PairModel]:

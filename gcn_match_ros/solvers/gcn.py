@@ -26,7 +26,7 @@ from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_t
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
-from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, PLANAR_RATIO
+from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, PLANAR_RATIO, check_planar_ratio
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
@@ -174,8 +174,8 @@ class GCNSolverConfig(SolverConfig):
             value = getattr(self, name)
             if not (0.0 <= value <= 1.0 or value == -1.0):
                 raise ValueError(f"{name} must be in [0, 1] (or -1: the model's choice), got {value}")
-        if not (0.0 < self.planar_ratio <= 1.0 or self.planar_ratio == -1.0):
-            raise ValueError(f"planar_ratio must be in (0, 1] (or -1: the model's choice), got {self.planar_ratio}")
+        if self.planar_ratio != -1.0:
+            check_planar_ratio(self.planar_ratio, "planar_ratio (or -1: the model's choice)")
         if self.top_k < 1:
             raise ValueError(f"top_k must be >= 1, got {self.top_k}")
         for name in ("unverified_threshold", "support_threshold"):
