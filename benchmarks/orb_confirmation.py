@@ -28,7 +28,7 @@ import torch
 from tqdm import tqdm
 
 from gcn_match_ros.data.convert import convert
-from gcn_match_ros.data.homography_sequence import SequenceConfig, homography_sequence, source_image, write_sequence
+from gcn_match_ros.data.homography_sequence import make_sequence
 from gcn_match_ros.evaluation import evaluate, format_table
 from gcn_match_ros.experiments import lead_lines, results_header
 from gcn_match_ros.metrics import count_pairs
@@ -68,15 +68,11 @@ def make_sequences(wheel: Path, data: Path) -> list:
     with zipfile.ZipFile(wheel) as z:
         for index, photo in enumerate(tqdm(PHOTOS, desc="sequences", unit="scene")):
             name = photo.rsplit(".", 1)[0].replace("_", "-")
-            folder = data / "homography" / name
             scenes.append(f"homography/{name}")
-            if (folder / "H1to6p").is_file():
-                continue
-            image = cv2.imdecode(np.frombuffer(z.read(f"skimage/data/{photo}"), np.uint8), cv2.IMREAD_UNCHANGED)
-            config = SequenceConfig()
-            views, to_source = homography_sequence(source_image(image, config.long_side), config,
-                                                   np.random.default_rng([SEED, index]))
-            write_sequence(folder, views, to_source)
+            make_sequence(data / "homography" / name,
+                          lambda: cv2.imdecode(np.frombuffer(z.read(f"skimage/data/{photo}"), np.uint8),
+                                               cv2.IMREAD_UNCHANGED),
+                          np.random.default_rng([SEED, index]))
     return scenes
 
 

@@ -22,6 +22,7 @@ precision-first threshold instead of the planar one.
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 from pathlib import Path
 
@@ -30,7 +31,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros.data.convert import convert
-from gcn_match_ros.data.homography_sequence import SequenceConfig, homography_sequence, source_image, write_sequence
+from gcn_match_ros.data.homography_sequence import make_sequence
 from gcn_match_ros.data.scenes import DATA_ROOT
 from gcn_match_ros.edges.candidates import EdgeConfig, candidate_edges
 from gcn_match_ros.edges.verify import MIN_SEEDS
@@ -51,18 +52,17 @@ def make_sequences(data_root: Path, data: Path) -> list:
     scenes = []
     for index, (scene, k) in enumerate(SOURCES):
         name = f"{scene.split('/')[1].split('-')[0]}{k}"
-        folder = data / "homography" / name
         scenes.append(f"homography/{name}")
-        if (folder / "H1to6p").is_file():
-            continue
-        image = cv2.imread(str(data_root / scene / f"{k:04d}.png"), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise SystemExit(f"cannot read {data_root / scene / f'{k:04d}.png'}")
-        config = SequenceConfig()
-        views, to_source = homography_sequence(source_image(image, config.long_side), config,
-                                               np.random.default_rng([SEED, index]))
-        write_sequence(folder, views, to_source)
+        make_sequence(data / "homography" / name, functools.partial(_read, data_root / scene / f"{k:04d}.png"),
+                      np.random.default_rng([SEED, index]))
     return scenes
+
+
+def _read(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SystemExit(f"cannot read {path}")
+    return image
 
 
 def model_census(problem: Problem) -> str:

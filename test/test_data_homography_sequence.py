@@ -5,8 +5,8 @@ import pytest
 
 from gcn_match_ros.data.convert import make_problem
 from gcn_match_ros.data.scenes import DatasetError, load_scene
-from gcn_match_ros.data.homography_sequence import (SequenceConfig, homography_sequence, source_image, view_quads,
-                                               view_size, write_sequence)
+from gcn_match_ros.data.homography_sequence import (SequenceConfig, homography_sequence, make_sequence, source_image,
+                                               view_quads, view_size, write_sequence)
 
 # geometry only: no photometric change, so views can be compared pixel by pixel
 GEOMETRY_ONLY = SequenceConfig(gain_range=(1, 1), gamma_range=(1, 1), blur_probability=0, noise_sigma=0)
@@ -96,3 +96,22 @@ def test_sequence_problem_labels_pairs_by_the_exact_homography(tmp_path):
 def test_write_sequence_checks_its_input(tmp_path):
     with pytest.raises(ValueError, match="one homography each"):
         write_sequence(tmp_path, [np.zeros((4, 4), np.uint8)] * 3, np.tile(np.eye(3), (2, 1, 1)))
+
+
+def test_make_sequence_writes_the_three_steps_sequence_once(tmp_path):
+    photo = cv2.cvtColor(smooth_texture(600, 900, seed=3), cv2.COLOR_GRAY2BGR)  # a colour photograph
+    config = SequenceConfig(n_views=3)
+    views, to_source = homography_sequence(source_image(photo, config.long_side), config, np.random.default_rng(7))
+    write_sequence(tmp_path / "by_steps", views, to_source)
+    reads = []
+
+    def read():
+        reads.append(1)
+        return photo
+
+    folder = make_sequence(tmp_path / "made", read, np.random.default_rng(7), config)
+    assert folder == tmp_path / "made" and len(reads) == 1
+    for name in ("img1.png", "img2.png", "img3.png", "H1to2p", "H1to3p"):
+        assert (folder / name).read_bytes() == (tmp_path / "by_steps" / name).read_bytes(), name
+    assert make_sequence(folder, read, np.random.default_rng(8), config) == folder and len(reads) == 1  # kept
+

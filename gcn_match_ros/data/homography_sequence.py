@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import List, Tuple
+from typing import Callable, List, Tuple
 
 import cv2
 import numpy as np
 
-__all__ = ["SequenceConfig", "source_image", "view_size", "view_quads", "homography_sequence", "write_sequence"]
+__all__ = ["SequenceConfig", "source_image", "view_size", "view_quads", "homography_sequence", "write_sequence",
+           "make_sequence"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,3 +185,20 @@ def write_sequence(folder: Path, views: List[np.ndarray], to_source: np.ndarray)
         H = np.linalg.inv(to_source[k - 1]) @ to_source[0]
         (folder / f"H1to{k}p").write_text("\n".join(" ".join(f"{v:.17g}" for v in row) for row in H / H[2, 2]) + "\n")
     return folder
+
+
+def make_sequence(folder: Path, read_image: Callable[[], np.ndarray], rng: np.random.Generator,
+                  config: SequenceConfig = SequenceConfig()) -> Path:
+    """One photograph's sequence in ``folder`` (:func:`source_image`, :func:`homography_sequence`,
+    :func:`write_sequence`), made once: a folder that already holds the sequence's last
+    homography is kept, and ``read_image`` (the photograph, any image ``cv2.imread`` gives) is
+    then not called.
+
+    Returns:
+        ``folder``.
+    """
+    folder = Path(folder)
+    if (folder / f"H1to{config.n_views}p").is_file():
+        return folder
+    views, to_source = homography_sequence(source_image(read_image(), config.long_side), config, rng)
+    return write_sequence(folder, views, to_source)
