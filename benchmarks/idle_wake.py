@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
-from gcn_match_ros.experiments import python_speed, results_header, speed_note
+from gcn_match_ros.experiments import python_speed, results_header, run_note
 from gcn_match_ros.stream import StreamState, solve_window
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -110,9 +110,9 @@ def main(argv=None) -> int:
                      f"{np.percentile(t, 95):.1f} | {t.max():.1f} | {np.mean(t > 1e3 * SLOW * base):.0%} | "
                      f"{spin / pace if pace else 0:.2f} |")
     header = results_header("Idling between windows: solve time back to back and at 10 Hz", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads, env=("OPENBLAS_NUM_THREADS",))
-    text = ("\n".join(header) + f"\n\nRun {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. "
-            f"{speed_note(speed_before, python_speed())}\n\n"
+                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
+                            env=("OPENBLAS_NUM_THREADS",))
+    text = ("\n".join(header) + f"\n\n{run_note(seconds, speed_before)}\n\n"
             f"{views} x {keypoints} (synthetic.rome16k, the same window each time, one StreamState, landmarks "
             f"on: solve_window's wall time), solver `{solver.describe()}`; {args.rounds} rounds of "
             f"{args.windows} windows a mode, the modes' order reversed every other round.\n\n"

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcn_match_ros.experiments import describe_machine, python_speed, results_header, speed_note
+from gcn_match_ros.experiments import describe_machine, python_speed, results_header, run_note
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -338,7 +338,7 @@ def main(argv=None) -> int:
     header = results_header("Matcher node: end-to-end latency and throughput", __file__, argv,
                             torch_threads=torch.get_num_threads(), machine_extra=extra)
     doc = "\n".join(header) + f"""
-Run {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. {speed_note(speed_before, python_speed())}
+{run_note(seconds, speed_before)}
 
 Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}; every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz

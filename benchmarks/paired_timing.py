@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
-from gcn_match_ros.experiments import python_speed, results_header, speed_note
+from gcn_match_ros.experiments import python_speed, results_header, run_note
 from gcn_match_ros.metrics import paired_bootstrap
 from gcn_match_ros.stream import StreamState, solve_window
 
@@ -99,8 +99,7 @@ def main(argv=None) -> int:
     header = results_header("Paired timing of two solvers (window by window)", __file__,
                             sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
                             env=("OPENBLAS_NUM_THREADS",))
-    text = ("\n".join(header) + f"\n\nRun {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. "
-            f"{speed_note(speed_before, python_speed())}\n\n"
+    text = ("\n".join(header) + f"\n\n{run_note(seconds, speed_before)}\n\n"
             f"{views} x {keypoints} (synthetic.rome16k, the same window every 100 ms of stream time, each "
             f"solver with its own StreamState), {args.pairs} pairs after {WARMUP} warm-up windows each; "
             "solve_window's wall time (landmarks included); stages: medians of gcn_match_ros.timing.\n\n"

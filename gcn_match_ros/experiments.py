@@ -11,8 +11,9 @@
   windows :data:`WINDOWS`, the loop over them :func:`pose_windows` and the count
   :func:`first_pair_tracks`.
 - Reporting: the header every results file starts with (:func:`results_header`: title, the
-  command that ran, the machine), the machine's speed when a timing ran (:func:`speed_note`)
-  and the F1 lead of gcn over the best other method with a bootstrap interval (:func:`lead_lines`).
+  command that ran, the machine), the machine's speed when a timing ran (:func:`speed_note`;
+  with when and for how long: :func:`run_note`) and the F1 lead of gcn over the best other
+  method with a bootstrap interval (:func:`lead_lines`).
 
 Problem names follow :func:`gcn_match_ros.data.convert.problem_name`:
 ``<dataset>_<scene>_<detector>_<views>``, e.g. ``strecha_fountain-P11_sift_4-5-6``.
@@ -39,7 +40,7 @@ from .problem import Problem
 __all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "GEOMETRIC_DEV_SCENES",
            "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
-           "describe_machine", "command_line", "results_header", "python_speed", "speed_note"]
+           "describe_machine", "command_line", "results_header", "python_speed", "speed_note", "run_note"]
 
 
 #: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
@@ -353,6 +354,12 @@ def speed_note(before: float, after: float) -> str:
     after the run."""
     return (f"A fixed pure-Python loop (experiments.python_speed) took {before:.2f} s before the run and "
             f"{after:.2f} s after it (lower is faster).")
+
+
+def run_note(seconds: float, speed_before: float) -> str:
+    """The line under a timing table's header: when it ran, for how long, and the machine's speed
+    before and after (:func:`speed_note`; call it as the run ends)."""
+    return f"Run {time.strftime('%Y-%m-%d %H:%M')}, {seconds:.0f} s. {speed_note(speed_before, python_speed())}"
 
 
 def results_header(title: str, script: Union[str, Path], argv: Optional[Sequence[str]] = None,

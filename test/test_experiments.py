@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.experiments: the split of the real scenes, window subsets, results headers, the gcn lead."""
 import platform
+import re
 import sys
 from pathlib import Path
 
@@ -10,8 +11,8 @@ from gcn_match_ros import experiments
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate
 from gcn_match_ros.experiments import (command_line, describe_machine, first_pair_tracks, images_of, lead_lines,
-                                       pose_windows, problem_files, python_speed, results_header, role, speed_note,
-                                       split, windows)
+                                       pose_windows, problem_files, python_speed, results_header, role, run_note,
+                                       speed_note, split, windows)
 
 from conftest import rigid_motion_2d, write_oxford_like_scene
 
@@ -155,3 +156,9 @@ def test_speed_note_states_the_loop_before_and_after():
     assert 0 < seconds < 60
     assert speed_note(1.0449, 1.184) == ("A fixed pure-Python loop (experiments.python_speed) took 1.04 s before "
                                          "the run and 1.18 s after it (lower is faster).")
+
+
+def test_run_note_says_when_how_long_and_the_speed():
+    note = run_note(61.4, 0.5)
+    assert re.fullmatch(r"Run \d{4}-\d\d-\d\d \d\d:\d\d, 61 s\. A fixed pure-Python loop \(experiments\.python_speed\) "
+                        r"took 0\.50 s before the run and \d+\.\d\d s after it \(lower is faster\)\.", note), note
