@@ -17,7 +17,7 @@ landmarks on, as the node) solved in rounds that alternate the modes (so drift h
 
 Usage::
 
-    OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/idle_wake.py                 # ~2 min
+    OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/idle_wake.py                 # ~1 min
     OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/idle_wake.py --config 4x500 --rounds 8 --spin-ms 10 30
 """
 from __future__ import annotations

@@ -15,6 +15,7 @@ benchmarks/results/orb_confirmation_part_a.md.
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import subprocess
 import sys
@@ -69,11 +70,13 @@ def make_sequences(wheel: Path, data: Path) -> list:
         for index, photo in enumerate(tqdm(PHOTOS, desc="sequences", unit="scene")):
             name = photo.rsplit(".", 1)[0].replace("_", "-")
             scenes.append(f"homography/{name}")
-            make_sequence(data / "homography" / name,
-                          lambda: cv2.imdecode(np.frombuffer(z.read(f"skimage/data/{photo}"), np.uint8),
-                                               cv2.IMREAD_UNCHANGED),
+            make_sequence(data / "homography" / name, functools.partial(_decode, z, f"skimage/data/{photo}"),
                           np.random.default_rng([SEED, index]))
     return scenes
+
+
+def _decode(z: zipfile.ZipFile, member: str) -> np.ndarray:
+    return cv2.imdecode(np.frombuffer(z.read(member), np.uint8), cv2.IMREAD_UNCHANGED)
 
 
 def montage(data: Path, scenes: list, path: Path, thumb=(96, 72)) -> None:

@@ -61,12 +61,6 @@ AGREE_SIGMAS, AGREE_MIN_PX = 3.0, 1.0
 #: (EdgeConfig.planar_ratio): F fitted to noisy seeds of a plane is degenerate (F = [e']x H for any
 #: epipole e', which then catches outliers and off-H noise; benchmarks/results/planar_dev.md).
 PLANAR_RATIO = 0.8
-
-
-def check_planar_ratio(ratio: float, name: str = "planar_ratio") -> None:
-    """Refuse an H-vs-F ratio (:data:`PLANAR_RATIO`) outside (0, 1]; ``name`` says whose."""
-    if not 0.0 < ratio <= 1.0:
-        raise ValueError(f"{name} must be in (0, 1], got {ratio}")
 MIN_INLIERS = 15        # a trusted model explains at least this many seeds ...
 MIN_INLIER_RATIO = 0.4  # ... making at least this share of them
 #: OpenCV's USAC with local optimisation for F and E: ~5x faster than USAC_MAGSAC on our seeds
@@ -76,6 +70,12 @@ EPIPOLAR_ESTIMATOR = cv2.USAC_ACCURATE
 #: An essential matrix whose estimator inliers are less than this share in front of both
 #: cameras is degenerate (seen on generated orbit scenes): USAC_MAGSAC is tried instead.
 CHEIRAL_SHARE = 0.8
+
+
+def check_planar_ratio(ratio: float, name: str = "planar_ratio") -> None:
+    """Refuse an H-vs-F ratio (:data:`PLANAR_RATIO`) outside (0, 1]; ``name`` says whose."""
+    if not 0.0 < ratio <= 1.0:
+        raise ValueError(f"{name} must be in (0, 1], got {ratio}")
 
 
 @numba.extending.register_jitable
