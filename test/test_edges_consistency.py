@@ -43,6 +43,16 @@ def test_keep_follows_the_view_pair_status():
         assert not (geometry.keep(rows, cols, any_scores) & ~geometry.may_keep(rows, cols)).any()
 
 
+def test_model_slots_list_the_trusted_view_pairs_in_order():
+    p = _window(sizes=(20, 20, 20, 20))
+    geometry = WindowGeometry(p, {(1, 3): _shift(1, 0), (0, 2): None, (0, 1): _shift(2, 0)})
+    slot, pairs = geometry.model_slots
+    assert pairs == [(0, 1), (1, 3)]
+    expected = np.full((4, 4), -1)
+    expected[0, 1], expected[1, 3] = 0, 1
+    np.testing.assert_array_equal(slot, expected)
+
+
 def test_pairs_of_a_view_too_small_to_verify_are_kept_as_scored():
     p = _window(sizes=(20, MIN_SEEDS - 1, 20))
     geometry = WindowGeometry(p, {(0, 2): _shift(20, 10)})

@@ -225,16 +225,25 @@ class WindowGeometry:
         return out
 
     @functools.cached_property
-    def _agreement_tables(self):
-        """Each verified view pair's slot ((V, V) int64, -1: none) and its selected model as
-        :func:`_pairs_agree` reads it: :func:`.verify.model_matrices` stacked, and
-        :attr:`.verify.PairModel.inlier_rule` (whether the H residual is read, the tolerance)."""
+    def model_slots(self) -> Tuple[np.ndarray, List[ViewPair]]:
+        """The view pairs with a trusted model, sorted, and each one's place in that list as a
+        (V, V) int64 table (-1: none, and for (b, a)): how the compiled checks find a pair's model
+        in arrays stacked in that order.
+        """
+        pairs = sorted(self.models)
         V = self.verified.shape[0]
         slot = np.full((V, V), -1, np.int64)
-        parts = []
-        for p, ((a, b), model) in enumerate(self.models.items()):
+        for p, (a, b) in enumerate(pairs):
             slot[a, b] = p
-            parts.append(model_matrices(model.selected()) + model.inlier_rule)
+        return slot, pairs
+
+    @functools.cached_property
+    def _agreement_tables(self):
+        """:attr:`model_slots`' table and each model as :func:`_pairs_agree` reads it, in that
+        order: :func:`.verify.model_matrices` of the selected model stacked, and
+        :attr:`.verify.PairModel.inlier_rule` (whether the H residual is read, the tolerance)."""
+        slot, pairs = self.model_slots
+        parts = [model_matrices(self.models[ab].selected()) + self.models[ab].inlier_rule for ab in pairs]
         empty = np.zeros((0, 3, 3))
         H, Hi, F = ((np.array([q[k] for q in parts]) if parts else empty) for k in range(3))
         has_h, has_f, by_h = (np.array([q[k] for q in parts], bool) for k in (3, 4, 5))
@@ -280,13 +289,11 @@ class TrackCheck(MergeTest):
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
         # both orders: a merge looks its member pairs up as they come
         kept = np.unique(np.concatenate([rows * n + cols, cols * n + rows]))
-        V = geometry.verified.shape[0]
-        pair = np.full((V, V), -1, np.int64)
+        pair, pairs = geometry.model_slots
         fwd, bwd, planar, tol = [np.zeros((0, 3))], [np.zeros((0, 3))], [], []
         fwd_start, bwd_start = [], []
         n_fwd = n_bwd = 0
-        for p, (a, b) in enumerate(sorted(geometry.models)):
-            pair[a, b] = p
+        for a, b in pairs:
             f, g, is_planar, t = geometry.transfers(a, b)
             fwd.append(f); bwd.append(g); planar.append(is_planar); tol.append(t)
             fwd_start.append(n_fwd); bwd_start.append(n_bwd)
