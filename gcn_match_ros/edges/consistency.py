@@ -226,10 +226,9 @@ class WindowGeometry:
 
     @functools.cached_property
     def model_slots(self) -> Tuple[np.ndarray, List[ViewPair]]:
-        """The view pairs with a trusted model, sorted, and each one's place in that list as a
-        (V, V) int64 table (-1: none, and for (b, a)): how the compiled checks find a pair's model
-        in arrays stacked in that order.
-        """
+        """The view pairs (a, b), a < b, with a trusted model, sorted, and each one's place in that
+        list at [a, b] of a (V, V) int64 table (-1 everywhere else): how the compiled checks find a
+        view pair's model in arrays stacked in that order."""
         pairs = sorted(self.models)
         V = self.verified.shape[0]
         slot = np.full((V, V), -1, np.int64)
