@@ -204,7 +204,7 @@ def main(argv=None):
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "geometric_eval.md"))
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    methods = [m for m in args.methods.split(";" if ";" in args.methods else ",") if m]
+    methods = solvers.parse_method_list(args.methods)
     made = {m: solvers.create(m) for m in methods}
     t0 = time.time()
     rows, soft, chance = [], defaultdict(list), defaultdict(lambda: [0, 0])

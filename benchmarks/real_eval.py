@@ -56,8 +56,7 @@ def main(argv=None):
                          "problems are made into <problem folder>_photometric")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    methods = (args.methods.split(";" if ";" in args.methods else ",") if args.methods
-               else solvers.available_solvers() + EXTRA)
+    methods = solvers.parse_method_list(args.methods) if args.methods else solvers.available_solvers() + EXTRA
     scenes = [f"oxford/{s}" for s in OXFORD] + [f"strecha/{s}" for s in STRECHA]
     out = results_header("Real-scene evaluation", __file__, argv, torch_threads=1) + [
         "Methods with default settings; tracks by each method's rounding (shared greedy merging).  ",

@@ -108,7 +108,7 @@ def _cmd_match(args) -> int:
 
 def _cmd_eval(args) -> int:
     problems = _expand(args.problems)
-    methods = [m for m in args.methods.split(";" if ";" in args.methods else ",") if m]
+    methods = solvers.parse_method_list(args.methods)
     report = evaluation.evaluate(problems, methods, progress=not args.quiet)
     print(evaluation.format_table(report))
     if args.json:

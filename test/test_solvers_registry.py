@@ -4,7 +4,7 @@ import pytest
 
 from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
-from gcn_match_ros.solvers import available_solvers, create, parse_method, settings_of
+from gcn_match_ros.solvers import available_solvers, create, parse_method, parse_method_list, settings_of
 
 BUILT_INS = ("clear", "gcn", "matchals", "matcheig", "nn", "nn-ransac", "pgdds", "quickmatch", "spectral")
 
@@ -27,6 +27,12 @@ def test_create_reads_settings_and_overrides():
     # the same value twice is no conflict
     assert create("matchals:iters=7", iters=7).config.iters == 7
     assert parse_method(" nn : graph=mutual , threshold=0.1 ") == ("nn", {"graph": "mutual", "threshold": "0.1"})
+
+
+def test_parse_method_list_splits_on_semicolons_else_commas():
+    assert parse_method_list("nn,spectral") == ["nn", "spectral"]
+    assert parse_method_list("gcn:verify=false,threshold=0.3;nn;") == ["gcn:verify=false,threshold=0.3", "nn"]
+    assert parse_method_list("gcn") == ["gcn"] and parse_method_list("") == []
 
 
 def test_a_setting_given_twice_with_different_values_is_refused():

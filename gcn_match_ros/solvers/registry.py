@@ -7,7 +7,7 @@ from typing import Any, Dict, List, Tuple, Type
 
 from .base import Solver
 
-__all__ = ["register", "create", "available_solvers", "settings_of", "parse_method"]
+__all__ = ["register", "create", "available_solvers", "settings_of", "parse_method", "parse_method_list"]
 
 _REGISTRY: Dict[str, Type[Solver]] = {}
 
@@ -39,6 +39,13 @@ def parse_method(spec: str) -> Tuple[str, Dict[str, str]]:
             raise ValueError(f"method '{spec}': setting '{item}' is not key=value")
         settings[key.strip()] = value.strip()
     return name.strip(), settings
+
+
+def parse_method_list(text: str) -> List[str]:
+    """Several solver specs in one argument: separated by ';', or by ',' when there is no ';'
+    (a spec with more than one setting has commas of its own: ``"gcn:verify=false,threshold=0.3;nn"``).
+    Empty items are dropped."""
+    return [m for m in text.split(";" if ";" in text else ",") if m]
 
 
 def _solver_class(name: str) -> Type[Solver]:
