@@ -59,7 +59,10 @@ def test_the_map_holds_the_landmarks_near_the_true_points():
             for v, f in enumerate(frames):
                 kp_pubs[f.camera_id].publish(frame_to_keypoints(f))
                 pose_pubs[f.camera_id].publish(_pose(p.R[v], p.t[v], stamp))
-            session.spin_until(lambda: False, timeout=0.2)  # the keypoints and poses arrive first
+            # the keypoints and poses arrive first (waited for: a busy machine may take longer than a guess)
+            assert session.spin_until(lambda: all(node._keypoints.find(c, stamp) is not None
+                                                  and node._poses.find(c, stamp) is not None for c in kp_pubs),
+                                      timeout=10)
             matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
                                                    landmark_ages=landmarks.ages_s))
             assert session.spin_until(lambda: len(clouds) == k + 1, timeout=10)
