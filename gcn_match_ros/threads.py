@@ -30,14 +30,14 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import threading
-from typing import Any, Callable, Iterator, Optional
+from typing import Any, Callable, Iterator, List, Optional, Sequence
 
 import torch
 from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "alongside", "deferred", "Pending", "one_torch_thread"]
+__all__ = ["single_blas_thread", "alongside", "deferred", "Pending", "SharedTasks", "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None
@@ -111,6 +111,62 @@ class Pending:
         if self._holds_core:
             self._holds_core = False
             _give_back_core()
+
+
+class SharedTasks:
+    """Independent tasks that whichever threads take part run, each exactly once: :meth:`help`
+    runs tasks not yet taken until none is left, :meth:`results` helps, then waits for the tasks
+    other threads took. A thread that would otherwise wait for work on the second thread helps
+    instead (the ``gcn`` solver's candidate edges, a stream's landmark search); each task's
+    result is the same whoever ran it.
+
+    Args:
+        tasks: callables without arguments.
+        order: the positions of ``tasks`` in the order they are taken (default: as given);
+            :meth:`results` keeps the order of ``tasks``.
+    """
+
+    def __init__(self, tasks: Sequence[Callable[[], Any]], order: Optional[Sequence[int]] = None) -> None:
+        self._tasks = list(tasks)
+        self._order = list(range(len(self._tasks))) if order is None else [int(k) for k in order]
+        if sorted(self._order) != list(range(len(self._tasks))):
+            raise ValueError(f"order must hold each of the {len(self._tasks)} task positions once")
+        self._results: List[Any] = [None] * len(self._tasks)
+        self._errors: List[BaseException] = []
+        self._taken = 0
+        self._finished = 0
+        self._changed = threading.Condition()
+
+    def __len__(self) -> int:
+        return len(self._tasks)
+
+    def help(self) -> None:
+        """Run tasks not yet taken, on this thread, until none is left (or one has failed)."""
+        while True:
+            with self._changed:
+                if self._taken == len(self._tasks) or self._errors:
+                    return
+                k = self._order[self._taken]
+                self._taken += 1
+            try:
+                self._results[k] = self._tasks[k]()
+            except BaseException as exc:  # handed to the thread that asks for the results
+                with self._changed:
+                    self._errors.append(exc)
+            finally:
+                with self._changed:
+                    self._finished += 1
+                    self._changed.notify_all()
+
+    def results(self) -> List[Any]:
+        """Every task's return value, in the order of ``tasks`` (the first error re-raised),
+        helping meanwhile."""
+        self.help()
+        with self._changed:
+            self._changed.wait_for(lambda: self._finished == self._taken)
+            if self._errors:
+                raise self._errors[0]
+        return list(self._results)
 
 
 def _take_core() -> None:

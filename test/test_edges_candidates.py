@@ -156,7 +156,7 @@ def test_edge_config_fits_and_trusts_with_its_own_settings():
         EdgeConfig(planar_ratio=0.0)
 
 
-def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges():
+def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges(monkeypatch):
     """Four calibrated views, six view pairs: a second thread helping with the pairs changes
     nothing; every pair is computed once; a pair's error reaches the thread asking for the result."""
     import threading
@@ -180,15 +180,14 @@ def test_a_candidate_job_shared_by_two_threads_gives_the_one_thread_edges():
 
     calls = []
 
-    def failing(i, j):
+    def failing(job, i, j):
         calls.append((i, j))
         raise RuntimeError(f"pair {i}, {j}")
 
-    broken = cand.CandidateJob(problem)
-    broken._pair = failing
-    with pytest.raises(RuntimeError, match="pair 0, 1"):
-        broken.result()
-    assert calls == [(0, 1)]  # no pair taken after an error
+    monkeypatch.setattr(cand.CandidateJob, "_pair", failing)
+    with pytest.raises(RuntimeError, match="pair 2, 3"):
+        cand.CandidateJob(problem).result()
+    assert calls == [(2, 3)]  # taken from the last pair; none after an error
 
 
 def test_rank_counts_the_strictly_better_entries_of_its_keypoints_list():

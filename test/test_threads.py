@@ -1,14 +1,16 @@
 """Tests of gcn_match_ros.threads: numpy's BLAS on one thread, torch's pool untouched; work
 beside the caller on a second thread."""
 import contextlib
+import functools
 import threading
+import time
 
 import numpy as np
 import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import alongside, deferred, one_torch_thread, single_blas_thread
+from gcn_match_ros.threads import SharedTasks, alongside, deferred, one_torch_thread, single_blas_thread
 from gcn_match_ros.timing import StageTimes, stage
 
 
@@ -193,3 +195,43 @@ def test_one_torch_thread_gives_the_callers_count_back_also_when_the_body_raises
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_shared_tasks_run_each_task_once_whoever_takes_it():
+    """Two threads helping: every task runs once, results come back in the tasks' order, and
+    they are taken in the order given."""
+    ran, lock = [], threading.Lock()
+
+    def task(k):
+        with lock:
+            ran.append(k)
+        time.sleep(0.001)
+        return k * k
+
+    tasks = SharedTasks([functools.partial(task, k) for k in range(20)], order=range(19, -1, -1))
+    helper = threading.Thread(target=tasks.help)
+    helper.start()
+    assert tasks.results() == [k * k for k in range(20)]
+    helper.join()
+    assert sorted(ran) == list(range(20)) and len(tasks) == 20
+    ran.clear()  # one thread: taken in the given order
+    assert SharedTasks([functools.partial(task, k) for k in range(4)], order=[2, 0, 3, 1]).results() == [0, 1, 4, 9]
+    assert ran == [2, 0, 3, 1]
+    assert SharedTasks([]).results() == []
+
+
+def test_shared_tasks_hand_the_first_error_to_the_caller_and_take_nothing_after_it():
+    ran = []
+
+    def task(k):
+        ran.append(k)
+        if k == 1:
+            raise RuntimeError("task 1")
+        return k
+
+    tasks = SharedTasks([functools.partial(task, k) for k in range(5)])
+    with pytest.raises(RuntimeError, match="task 1"):
+        tasks.results()
+    assert ran == [0, 1]
+    with pytest.raises(ValueError, match="each of the 2 task positions once"):
+        SharedTasks([int, int], order=[0, 0])

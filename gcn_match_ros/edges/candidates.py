@@ -23,8 +23,8 @@ and at test time alike.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-import threading
 from typing import Dict, List, Optional, Tuple
 
 import numba
@@ -37,6 +37,7 @@ from ..descriptors import NORMALIZATIONS, cosine_distance
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
+from ..threads import SharedTasks
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
@@ -171,11 +172,17 @@ def candidate_edges(problem: Problem, config: EdgeConfig = EdgeConfig(),
 
 class CandidateJob:
     """The candidate edges of one window, computed view pair by view pair by whichever threads
-    take part: :meth:`help` takes pairs until none is left, :meth:`result` helps, waits for the
-    pairs other threads took and puts the edges together. The ``gcn`` solver's second thread
-    asks for the result while its first, once its network is done, helps instead of idling
-    (a 10 x 1000 window alone: ~1.2 s of pair fits after the network, now shared). Each pair's
-    candidates depend on that pair alone, so the edges are the same whoever computed them.
+    take part (:class:`gcn_match_ros.threads.SharedTasks`): :meth:`help` takes pairs until none
+    is left, :meth:`result` helps, waits for the pairs other threads took and puts the edges
+    together. The ``gcn`` solver's second thread asks for the result while its first, once its
+    network is done, helps instead of idling (a 10 x 1000 window alone: ~1.2 s of pair fits
+    after the network, now shared). Each pair's candidates depend on that pair alone, so the
+    edges are the same whoever computed them.
+
+    Pairs are taken from the last one back: the graph, built on the other thread meanwhile,
+    computes the shared best lists (:meth:`DescriptorSimilarity.most_similar`) from the first,
+    so each thread makes some of them instead of one waiting for the other's (a 4 x 500 stream
+    solve ~2 ms faster, benchmarks/results/stage_breakdown.md).
 
     Args: as :func:`candidate_edges`.
     """
@@ -188,38 +195,16 @@ class CandidateJob:
         offs = problem.view_offsets
         self._pairs = [(i, j) for i in range(problem.n_views) for j in range(i + 1, problem.n_views)
                        if offs[i + 1] - offs[i] >= 2 and offs[j + 1] - offs[j] >= 2]
-        self._done: List[Optional[Tuple[PairCandidates, Optional[PairModel]]]] = [None] * len(self._pairs)
-        self._errors: List[BaseException] = []
-        self._taken = 0
-        self._finished = 0
-        self._changed = threading.Condition()
+        self._tasks = SharedTasks([functools.partial(self._pair, i, j) for i, j in self._pairs],
+                                  order=range(len(self._pairs) - 1, -1, -1))
 
     def help(self) -> None:
         """Compute view pairs not yet taken, on this thread, until none is left."""
-        while True:
-            with self._changed:
-                if self._taken == len(self._pairs) or self._errors:
-                    return
-                k = self._taken
-                self._taken += 1
-            try:
-                self._done[k] = self._pair(*self._pairs[k])
-            except BaseException as exc:  # handed to the thread that asks for the result
-                with self._changed:
-                    self._errors.append(exc)
-            finally:
-                with self._changed:
-                    self._finished += 1
-                    self._changed.notify_all()
+        self._tasks.help()
 
     def result(self) -> EdgeSet:
         """The window's :class:`EdgeSet` (a pair's error re-raised), helping meanwhile."""
-        self.help()
-        with self._changed:
-            self._changed.wait_for(lambda: self._finished == self._taken)
-            if self._errors:
-                raise self._errors[0]
-        return self._edges()
+        return self._edges(self._tasks.results())
 
     def _pair(self, i: int, j: int) -> Tuple[PairCandidates, Optional[PairModel]]:
         problem, offs = self._problem, self._problem.view_offsets
@@ -236,14 +221,15 @@ class CandidateJob:
         return _pair_edges(sim, best, self._kp[a0:a1], self._kp[b0:b1], self._config, *intrinsics,
                            rig=self._rig if use_rig else None, cameras=cameras)
 
-    def _edges(self) -> EdgeSet:
-        """Every pair's edges together, with the features that need all pairs (triangle support)."""
+    def _edges(self, done: List[Tuple[PairCandidates, Optional[PairModel]]]) -> EdgeSet:
+        """Every pair's edges (``done``, in the order of the pairs) together, with the features
+        that need all pairs (triangle support)."""
         problem = self._problem
         offs = problem.view_offsets
         V, n = problem.n_views, problem.n_keypoints
-        parts = [part for part, _ in self._done]
+        parts = [part for part, _ in done]
         starts = [(int(offs[i]), int(offs[j])) for i, j in self._pairs]
-        models: Dict[ViewPair, Optional[PairModel]] = {pair: model for pair, (_, model) in zip(self._pairs, self._done)}
+        models: Dict[ViewPair, Optional[PairModel]] = {pair: model for pair, (_, model) in zip(self._pairs, done)}
         if not parts:
             z = np.zeros(0, np.int64)
             return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool),
