@@ -26,10 +26,11 @@ point seen by several cameras, cycle-consistent by construction) and the keypoin
 
 The cost: one descriptor product (keypoints x landmarks), then one compiled pass that keeps each
 keypoint's two best landmarks, visiting only the landmarks its camera did not see and the
-sightings in the grid cells around it (the gate), the two halves of a large window's keypoints
-on two threads. That search needs no tracks (:meth:`LandmarkTracker.search`): in a stream it
-runs on the second thread while the solver finishes the window (:func:`gcn_match_ros.stream.solve_window`),
-and only the rest (:meth:`LandmarkTracker.associate`) follows the solve;
+sightings in the grid cells around it (the gate), in chunks of keypoints that both threads take.
+That search needs no tracks (:meth:`LandmarkTracker.search`): in a stream it runs on the second
+thread while the solver finishes the window, and the solving thread takes the chunks still left
+once it is done (:func:`gcn_match_ros.stream.solve_window`); only the rest
+(:meth:`LandmarkTracker.associate`) follows the solve;
 every later step works on those pairs (``test_landmarks`` checks them against the rule written
 as dense matrices). A still 4 x 500 window with 445 landmarks: 6.7 ms (11.6 ms on one thread
 with the earlier sort-based best per unit; benchmarks/results/stage_breakdown.md).
@@ -40,7 +41,9 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import math
+import threading
 from typing import Dict, Iterator, NamedTuple, Optional, Sequence, Tuple
 
 import cv2
@@ -51,7 +54,7 @@ import numpy as np
 from .descriptors import cosine_distance
 from .edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, fit_pair, matrix_residuals, model_matrices, trusted_support
 from .rounding import track_members
-from .threads import alongside
+from .threads import SharedTasks, alongside
 
 __all__ = ["LandmarkConfig", "LandmarkTracker", "WindowSearch", "PerCameraNNLinker"]
 
@@ -82,9 +85,15 @@ MOTION_REUSE_SIGMAS = 2.0
 MOTION_MEMORY_WINDOWS = 8
 #: the motion is checked with H when H explains at least this share of F's pairs
 MOTION_PLANAR_RATIO = 0.95
-#: a window's landmark candidates are found on two threads from this many (keypoint, landmark)
-#: similarities (~5 ns each) on: below it, handing half to the second thread costs more than it saves
-SPLIT_PRODUCTS = 100_000
+#: A window's landmark search is cut into chunks of keypoints of about this many (keypoint,
+#: landmark) similarities, each taken by whichever thread is free (:class:`LandmarkSearch`): ~0.7
+#: ms a chunk on a still 4 x 500 window (445 landmarks), small enough that the thread done first
+#: takes over most of what is left, and above the size where handing a chunk to the second
+#: thread costs more than it saves. A window below it is one chunk.
+SEARCH_CHUNK_PRODUCTS = 100_000
+#: keypoints a chunk holds at least: from a few rows on, a chunk's descriptor product is bitwise
+#: that of the whole window (one row is not: BLAS then takes a matrix-vector kernel)
+SEARCH_CHUNK_ROWS = 64
 _NO_PAIRS = np.zeros((0, 2))
 
 
@@ -109,8 +118,9 @@ class WindowSearch(NamedTuple):
     :meth:`LandmarkTracker.associate`.
 
     Shapes: column (N,) int64 camera column; keypoints (N, 2); desc (N, D) float32 L2-normalised;
-    candidates: (keypoint, landmark, score) (K,) each (:meth:`LandmarkTracker._candidates`), None
-    when there were no landmarks or keypoints.
+    candidates: (keypoint, landmark, score) (K,) each, K <= 2N: each keypoint's best and second-best
+    landmark that pass the gate (:func:`_two_best_landmarks`); None when there were no landmarks or
+    keypoints.
     """
 
     column: np.ndarray
@@ -118,6 +128,53 @@ class WindowSearch(NamedTuple):
     desc: np.ndarray
     stamp_ns: int
     candidates: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+class LandmarkSearch:
+    """One window's :meth:`LandmarkTracker.search`, by whichever threads take part
+    (:class:`gcn_match_ros.threads.SharedTasks`): the first :meth:`help` sets the search up
+    (retires the landmarks unseen too long, notes the window's cameras), then every helper
+    scores chunks of keypoints against the landmarks until none is left; :meth:`result` helps,
+    waits for the chunks others took and puts them together. The chunks are fixed by the window
+    and the tracker, not by who ran them: the result is the same on one thread or two.
+    Made by :meth:`LandmarkTracker.search_job`.
+    """
+
+    def __init__(self, tracker: "LandmarkTracker", camera_ids: Sequence[str], view_offsets: np.ndarray,
+                 keypoints: np.ndarray, descriptors: np.ndarray, stamp_ns: int) -> None:
+        self._tracker = tracker
+        self._args = (camera_ids, view_offsets, keypoints, descriptors, int(stamp_ns))
+        self._lock = threading.Lock()
+        self._set_up: Optional[Tuple[WindowSearch, SharedTasks]] = None
+
+    @property
+    def chunks(self) -> int:
+        """How many chunks the keypoints are scored in (sets the search up)."""
+        return len(self._tasks()[1])
+
+    def help(self) -> None:
+        """Score chunks not yet taken, on this thread, until none is left."""
+        self._tasks()[1].help()
+
+    def result(self) -> WindowSearch:
+        """The search (:class:`WindowSearch`; a chunk's error re-raised), helping meanwhile; the
+        tracker's next call must be :meth:`LandmarkTracker.associate` with it."""
+        searched, tasks = self._tasks()
+        if len(tasks):
+            first, second, first_score, second_score = (np.concatenate(parts) for parts in zip(*tasks.results()))
+            rows = np.arange(first.size)
+            member = np.concatenate([rows, rows])
+            lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
+            keep = np.isfinite(best)
+            searched = searched._replace(candidates=(member[keep], lm[keep], best[keep]))
+        self._tracker._searched = searched
+        return searched
+
+    def _tasks(self) -> Tuple[WindowSearch, SharedTasks]:
+        with self._lock:
+            if self._set_up is None:
+                self._set_up = self._tracker._search_tasks(*self._args)
+            return self._set_up
 
 
 class LandmarkTracker:
@@ -159,9 +216,29 @@ class LandmarkTracker:
     def search(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
                descriptors: np.ndarray, stamp_ns: int) -> WindowSearch:
         """The first half of :meth:`update`, which needs no tracks: retire the landmarks unseen
-        too long, then find each keypoint's candidate landmarks (:meth:`_candidates`). It can run
-        while the window is solved (:func:`gcn_match_ros.stream.solve_window`); the next call on
-        this tracker must be :meth:`associate` with its result."""
+        too long, then find each keypoint's candidate landmarks. A window of several chunks
+        (:data:`SEARCH_CHUNK_PRODUCTS`) is shared with the second thread
+        (:func:`gcn_match_ros.threads.alongside`): the descriptor product and the compiled pass
+        release the GIL. The next call on this tracker must be :meth:`associate` with its result.
+        In a stream the search runs while the window is solved instead (:meth:`search_job`)."""
+        job = self.search_job(camera_ids, view_offsets, keypoints, descriptors, stamp_ns)
+        with alongside(job.help, parallel=job.chunks > 1):
+            return job.result()
+
+    def search_job(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+                   descriptors: np.ndarray, stamp_ns: int) -> "LandmarkSearch":
+        """:meth:`search` as a :class:`LandmarkSearch` that threads take part in, made without
+        work: :func:`gcn_match_ros.stream.solve_window` hands it to the second thread while the
+        window is solved, and the solving thread helps with what is left once it is done. Until
+        its result is taken the tracker must not be used otherwise."""
+        return LandmarkSearch(self, camera_ids, view_offsets, keypoints, descriptors, stamp_ns)
+
+    def _search_tasks(self, camera_ids: Sequence[str], view_offsets: np.ndarray, keypoints: np.ndarray,
+                      descriptors: np.ndarray, stamp_ns: int) -> Tuple[WindowSearch, SharedTasks]:
+        """A search's set-up, on the first thread that takes part: retire, note the cameras,
+        normalise. Returns the search without candidates and the tasks that find them, chunks of
+        keypoints each giving :func:`_two_best_landmarks` of its rows (none without landmarks or
+        keypoints)."""
         n = keypoints.shape[0]
         view = np.repeat(np.arange(len(camera_ids)), np.diff(view_offsets))
         desc = descriptors.astype(np.float32)
@@ -171,9 +248,22 @@ class LandmarkTracker:
         self._retire(stamp_ns)
         self._camera_columns(camera_ids)
         column = np.array([self._cams[c] for c in camera_ids], np.int64)[view]   # (N,) camera column
-        candidates = self._candidates(column, keypoints, desc) if self._ids.size and n else None
-        self._searched = WindowSearch(column, keypoints, desc, stamp_ns, candidates)
-        return self._searched
+        searched = WindowSearch(column, keypoints, desc, stamp_ns, None)
+        if not (self._ids.size and n):
+            return searched, SharedTasks([])
+        cfg = self.config
+        points = np.asarray(keypoints, np.float64)
+        landmarks, xy = self._desc, self._xy  # as they are now: the tracker is not changed until associate()
+
+        def two_best(lo: int, hi: int):
+            return _two_best_landmarks(desc[lo:hi] @ landmarks.T, column[lo:hi], points[lo:hi], xy,
+                                       np.float64(cfg.gate_px), np.float32(cfg.min_similarity),
+                                       np.float32(cfg.cross_similarity))
+
+        chunks = max(1, min(n * self._ids.size // SEARCH_CHUNK_PRODUCTS, n // SEARCH_CHUNK_ROWS))
+        bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
+        return searched, SharedTasks([functools.partial(two_best, int(lo), int(hi))
+                                      for lo, hi in zip(bounds[:-1], bounds[1:])])
 
     def associate(self, searched: WindowSearch, track: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """The second half of :meth:`update`: the window's units (from ``track`` (N,)) take
@@ -234,38 +324,6 @@ class LandmarkTracker:
             if ns == stamp_ns:
                 return back
         return None
-
-    def _candidates(self, column, keypoints, desc):
-        """Each keypoint's two best landmarks that pass the gate and their similarity (module
-        docstring); ``column`` (N,) is each keypoint's camera column. Called on the caller's
-        thread, a large window's second half of keypoints is scored on the second thread
-        (:func:`gcn_match_ros.threads.alongside`): the descriptor product and the compiled pass
-        release the GIL. Called on the second thread (beside a solve), all of it runs there.
-
-        Returns:
-            keypoint, landmark (K,) int64 and score (K,) float32, K <= 2N.
-        """
-        cfg = self.config
-        column, keypoints = np.asarray(column, np.int64), np.asarray(keypoints, np.float64)
-        n = desc.shape[0]
-
-        def two_best(lo: int, hi: int):
-            return _two_best_landmarks(desc[lo:hi] @ self._desc.T, column[lo:hi], keypoints[lo:hi], self._xy,
-                                       np.float64(cfg.gate_px), np.float32(cfg.min_similarity),
-                                       np.float32(cfg.cross_similarity))
-
-        if n * self._ids.size < SPLIT_PRODUCTS:
-            first, second, first_score, second_score = two_best(0, n)
-        else:
-            with alongside(two_best, n // 2, n) as second_half:
-                first_half = two_best(0, n // 2)
-            first, second, first_score, second_score = (np.concatenate(parts)
-                                                        for parts in zip(first_half, second_half.result()))
-        rows = np.arange(n)
-        member = np.concatenate([rows, rows])
-        lm, best = np.concatenate([first, second]), np.concatenate([first_score, second_score])
-        keep = np.isfinite(best)
-        return member[keep], lm[keep], best[keep]
 
     def _motion_checked(self, best_lm, claimed, units, column, keypoints):
         """The continuations that agree with the image motion since the last sightings.

@@ -44,8 +44,9 @@ class WindowLandmarks:
     """The landmark of every keypoint of one window.
 
     Shapes: ids (N,) int64 (-1: none); ages_ns (N,) int64 nanoseconds since the landmark was
-    first seen (-1: none). ``seconds``: the time the association took after the solve (its
-    landmark search runs beside the solve where the solver leaves the second thread idle).
+    first seen (-1: none). ``seconds``: the time the landmarks took after the solve: the
+    search's chunks still left (the search runs beside the solve where the solver leaves the
+    second thread idle) and the association.
     """
 
     ids: np.ndarray
@@ -75,12 +76,15 @@ def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
         none = np.full(problem.n_keypoints, -1, np.int64)
         return solver.solve(problem, stream=state), WindowLandmarks(none, none.copy())
     # The landmark search needs no tracks: it runs on the second thread once the solve leaves
-    # that thread idle (Solver.solve's ``beside``), and the association then takes its result.
-    with deferred(state.landmarks.search, problem.camera_ids, problem.view_offsets, problem.keypoints,
-                  problem.descriptors, int(stamp_ns)) as search:
-        result = solver.solve(problem, stream=state, beside=search)
+    # that thread idle (Solver.solve's ``beside``), this thread takes the chunks still left once
+    # the solve is done, and the association then takes its result.
+    search = state.landmarks.search_job(problem.camera_ids, problem.view_offsets, problem.keypoints,
+                                        problem.descriptors, int(stamp_ns))
+    with deferred(search.help) as beside:
+        result = solver.solve(problem, stream=state, beside=beside)
         start = time.perf_counter()
-        ids, ages = state.landmarks.associate(search.result(), result.track)
+        searched = search.result()
+    ids, ages = state.landmarks.associate(searched, result.track)
     return result, WindowLandmarks(ids, ages, time.perf_counter() - start)
 
 

@@ -153,11 +153,8 @@ def test_sparse_association_follows_the_dense_rule():
         track[rng.random(track.size) < 0.2] = -1          # lone keypoints too
         if len(tracker):
             units = _Units(track)
-            desc = p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)
-            view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
-            tracker._camera_columns(p.camera_ids)
-            column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
-            member, lm, score = tracker._candidates(column, p.keypoints, desc.astype(np.float32))
+            member, lm, score = tracker.search(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors,
+                                               stamp).candidates
             best, _ = _best_per_unit(units.of_keypoint[member], lm, score, len(units), tracker.config.ratio)
             dense = _dense_choice(tracker, p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, list(units))
             agree = best == dense
@@ -237,23 +234,30 @@ def test_best_per_unit_follows_its_rule_with_many_ties():
             assert best_score[u] == (np.float32(top) if passes else 0.0)
 
 
-def test_candidates_on_two_threads_are_those_of_one(monkeypatch):
+def test_a_search_in_chunks_on_two_threads_is_that_of_one(monkeypatch):
+    """The search's chunks, taken by two threads, give the candidates and the ids of one chunk
+    on one thread."""
+    import threading
+
     import gcn_match_ros.landmarks as landmarks_module
 
     problems, _, stamps = rig_sequence(RigSequenceConfig(n_cameras=3, n_windows=3, n_points=600), rng=3)
-    tracker = LandmarkTracker()
-    for p, stamp in zip(problems[:2], stamps):
-        tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, p.gt_track, stamp)
-    p = problems[2]
-    desc = (p.descriptors / np.linalg.norm(p.descriptors, axis=1, keepdims=True)).astype(np.float32)
-    view = np.repeat(np.arange(len(p.camera_ids)), np.diff(p.view_offsets))
-    column = np.array([tracker._cams[c] for c in p.camera_ids])[view]
     found = {}
-    for split in (0, 10**12):   # every window split in two halves; none split
-        monkeypatch.setattr(landmarks_module, "SPLIT_PRODUCTS", split)
-        found[split] = tracker._candidates(column, p.keypoints, desc)
-    assert found[0][0].size > 500
-    for a, b in zip(found[0], found[10**12]):
+    for chunk in (10**12, 2_000):   # one chunk; many, shared by two threads (and update's search)
+        monkeypatch.setattr(landmarks_module, "SEARCH_CHUNK_PRODUCTS", chunk)
+        tracker = LandmarkTracker()
+        for p, stamp in zip(problems[:2], stamps):
+            tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, p.gt_track, stamp)
+        p = problems[2]
+        job = tracker.search_job(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, stamps[2])
+        helper = threading.Thread(target=job.help)
+        helper.start()
+        searched = job.result()
+        helper.join()
+        found[chunk] = (job.chunks, searched.candidates, tracker.associate(searched, p.gt_track))
+    (one, alone, ids_alone), (many, shared, ids_shared) = found[10**12], found[2_000]
+    assert one == 1 and many > 4 and alone[0].size > 500
+    for a, b in zip(alone + ids_alone, shared + ids_shared):
         np.testing.assert_array_equal(a, b)
 
 
