@@ -94,6 +94,9 @@ SEARCH_CHUNK_PRODUCTS = 100_000
 #: keypoints a chunk holds at least: from a few rows on, a chunk's descriptor product is bitwise
 #: that of the whole window (one row is not: BLAS then takes a matrix-vector kernel)
 SEARCH_CHUNK_ROWS = 64
+#: and at most this many chunks: each costs a call and a product of its own (~30 us), and two
+#: threads finishing within one of 16 chunks of each other waste little
+SEARCH_CHUNKS = 16
 _NO_PAIRS = np.zeros((0, 2))
 
 
@@ -254,13 +257,14 @@ class LandmarkTracker:
         cfg = self.config
         points = np.asarray(keypoints, np.float64)
         landmarks, xy = self._desc, self._xy  # as they are now: the tracker is not changed until associate()
+        gate = np.float64(cfg.gate_px)
+        unseen_lists, grid = _unseen_by_camera(xy), _sighting_grid(xy, gate)
 
         def two_best(lo: int, hi: int):
-            return _two_best_landmarks(desc[lo:hi] @ landmarks.T, column[lo:hi], points[lo:hi], xy,
-                                       np.float64(cfg.gate_px), np.float32(cfg.min_similarity),
-                                       np.float32(cfg.cross_similarity))
+            return _two_best_landmarks(desc[lo:hi] @ landmarks.T, column[lo:hi], points[lo:hi], xy, unseen_lists,
+                                       grid, gate, np.float32(cfg.min_similarity), np.float32(cfg.cross_similarity))
 
-        chunks = max(1, min(n * self._ids.size // SEARCH_CHUNK_PRODUCTS, n // SEARCH_CHUNK_ROWS))
+        chunks = max(1, min(n * self._ids.size // SEARCH_CHUNK_PRODUCTS, n // SEARCH_CHUNK_ROWS, SEARCH_CHUNKS))
         bounds = np.linspace(0, n, chunks + 1).astype(np.int64)
         return searched, SharedTasks([functools.partial(two_best, int(lo), int(hi))
                                       for lo, hi in zip(bounds[:-1], bounds[1:])])
@@ -1100,7 +1104,7 @@ class PerCameraNNLinker:
 
 
 @numba.njit(cache=True, nogil=True)
-def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cross_similarity):
+def _two_best_landmarks(sim, column, keypoints, xy, unseen_lists, grid, gate_px, min_similarity, cross_similarity):
     """Per keypoint its best and second-best landmark (-1 and -inf where none) by the rule of
     the module docstring: a landmark its camera saw counts at ``sim`` >= ``min_similarity`` when
     the keypoint lies within ``gate_px`` of one of its last sightings (any camera's), one its
@@ -1112,6 +1116,9 @@ def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cro
     landmarks); where the sightings around a keypoint are dense (a still scene that every camera
     sees), that one pass in landmark order, which is then cheaper.
 
+    ``unseen_lists`` (:func:`_unseen_by_camera`) and ``grid`` (:func:`_sighting_grid`, at
+    ``gate_px``) are of ``xy``, made once for all chunks of a window's keypoints.
+
     Shapes: sim (N, L) float32; column (N,); keypoints (N, 2); xy (L, cameras, 2), NaN where
     unseen -> (N,) int64 twice, (N,) float32 twice.
     """
@@ -1122,8 +1129,8 @@ def _two_best_landmarks(sim, column, keypoints, xy, gate_px, min_similarity, cro
     second = np.full(n, -1, np.int64)
     first_score = np.full(n, -np.inf, np.float32)
     second_score = np.full(n, -np.inf, np.float32)
-    unseen, unseen_start = _unseen_by_camera(xy)
-    x0, y0, cell, nx, ny, cell_start, sighting_lm, sighting_xy = _sighting_grid(xy, gate_px)
+    unseen, unseen_start = unseen_lists
+    x0, y0, cell, nx, ny, cell_start, sighting_lm, sighting_xy = grid
     passed_lm = np.empty(sighting_lm.size, np.int64)   # one keypoint's sightings that pass
     passed_score = np.empty(sighting_lm.size, np.float32)
     for i in range(n):

@@ -83,6 +83,7 @@ def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
     with deferred(search.help) as beside:
         result = solver.solve(problem, stream=state, beside=beside)
         start = time.perf_counter()
+        beside.start()  # where the solver left it unstarted (one-thread solves): both threads search
         searched = search.result()
     ids, ages = state.landmarks.associate(searched, result.track)
     return result, WindowLandmarks(ids, ages, time.perf_counter() - start)

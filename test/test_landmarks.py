@@ -166,7 +166,7 @@ def test_sparse_association_follows_the_dense_rule():
 
 
 def test_two_best_landmarks_known_answers():
-    from gcn_match_ros.landmarks import _two_best_landmarks
+    from gcn_match_ros.landmarks import _sighting_grid, _two_best_landmarks, _unseen_by_camera
 
     nan = np.nan
     # landmarks 0-3 seen by camera 0 at these pixels (camera 1: landmark 3 only); landmark 4 by camera 1 only
@@ -180,8 +180,9 @@ def test_two_best_landmarks_known_answers():
                     [0.9, 0.9, 0.9, 0.9, 0.8]], np.float32)
     keypoints = np.array([[101.0, 99.0], [5000.0, -3000.0], [1e4, 1e4], [1e300, -1e300], [nan, 5.0]])
     column = np.array([0, 0, 1, 0, 0])
-    first, second, s1, s2 = _two_best_landmarks(sim, column, keypoints, xy, np.float64(40.0), np.float32(0.45),
-                                                np.float32(0.75))
+    gate = np.float64(40.0)
+    first, second, s1, s2 = _two_best_landmarks(sim, column, keypoints, xy, _unseen_by_camera(xy),
+                                                _sighting_grid(xy, gate), gate, np.float32(0.45), np.float32(0.75))
     # keypoint 0: gated 0, 1 (tie at 0.8) and 3 (near its camera-1 sighting, 0.7); 4 unseen by camera 0, below 0.75
     assert (first[0], second[0]) == (0, 1) and s1[0] == s2[0] == np.float32(0.8)
     assert (first[1], second[1]) == (4, -1) and s2[1] == -np.inf   # 0.76 >= 0.75 for a landmark camera 0 never saw

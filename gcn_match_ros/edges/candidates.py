@@ -179,10 +179,10 @@ class CandidateJob:
     after the network, now shared). Each pair's candidates depend on that pair alone, so the
     edges are the same whoever computed them.
 
-    Pairs are taken from the last one back: the graph, built on the other thread meanwhile,
-    computes the shared best lists (:meth:`DescriptorSimilarity.most_similar`) from the first,
-    so each thread makes some of them instead of one waiting for the other's (a 4 x 500 stream
-    solve ~2 ms faster, benchmarks/results/stage_breakdown.md).
+    Pairs are taken from the last one back: the graph, built meanwhile on the solver's first
+    thread, computes the shared best lists (:meth:`DescriptorSimilarity.most_similar`) from the
+    first, so each thread makes some of them instead of one waiting for the other's (a 4 x 500
+    stream solve 2-3 ms faster, benchmarks/results/stage_breakdown.md).
 
     Args: as :func:`candidate_edges`.
     """
