@@ -14,8 +14,9 @@ as a stream of that rig (one :class:`gcn_match_ros.stream.StreamState` across th
 cameras named: the remembered two-view models are re-checked and reused,
 :mod:`gcn_match_ros.edges.rig_memory`) — what the matcher node does with a fixed rig. The
 stream also gives each window's keypoints their persistent landmarks, as the node does
-(:func:`gcn_match_ros.stream.solve_window`): that association's time is its own column, outside
-the solve's total, with the ratio of the two (issue 13: within 20%).
+(:func:`gcn_match_ros.stream.solve_window`): the time that takes after the solve (the landmark
+search's chunks still left, then the association) is its own column, outside the solve's total,
+with the ratio of the two (issue 13: within 20%).
 
 Usage::
 
@@ -150,8 +151,8 @@ def main(argv=None) -> int:
               "thread beside its graph and network: its stages then add up to more than its total, and 'waiting' "
               "is the time the solve idled for that thread; gcn:parallel=false is the same solve on one thread); windows: synthetic.rome16k, SIFT-like descriptors. Stream rows "
               "also give the window's keypoints their landmarks, as the node does (stream.solve_window, the "
-              "same still scene every 100 ms: every landmark continues): 'landmarks' is that association's "
-              "time, outside the total (issue 13's goal: with / without <= 1.20). "
+              "same still scene every 100 ms: every landmark continues): 'landmarks' is the time they take "
+              "after the solve (the search's chunks still left, the association), outside the total (issue 13's goal: with / without <= 1.20). "
               f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
             + table + "\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)
