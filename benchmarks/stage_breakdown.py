@@ -152,7 +152,8 @@ def main(argv=None) -> int:
               "is the time the solve idled for that thread; gcn:parallel=false is the same solve on one thread); windows: synthetic.rome16k, SIFT-like descriptors. Stream rows "
               "also give the window's keypoints their landmarks, as the node does (stream.solve_window, the "
               "same still scene every 100 ms: every landmark continues): 'landmarks' is the time they take "
-              "after the solve (the search's chunks still left, the association), outside the total (issue 13's goal: with / without <= 1.20). "
+              "after the solve (the search's chunks still left, the association), outside the total "
+              "(issue 13's goal: with / without <= 1.20). "
               f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
             + table + "\n")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -12,9 +12,12 @@ that solve (the matcher node, ``gcn-match``) call :func:`single_blas_thread` onc
 the ``gcn`` solver's candidate edges (two-view fits, compiled loops that release the GIL) beside
 its graph and network (torch, which releases it too). :func:`deferred` leaves the start to whoever
 knows when that thread is idle: a stream's landmark search waits for the solver to start it once
-its candidate edges are done (:func:`gcn_match_ros.stream.solve_window`). On 2 cores: the matcher node's 4 x 500
-p95 latency 125 -> 80 ms (benchmarks/results/node_latency.md), the offline stream solve 71 -> 63
-ms (stage_breakdown.md; the two threads slow each other, so the gain varies between runs).
+its candidate edges are done (:func:`gcn_match_ros.stream.solve_window`). On 2 cores: the matcher
+node's 4 x 500 p95 latency 125 -> 80 ms (benchmarks/results/node_latency.md), the offline stream
+solve 71 -> 63 ms (stage_breakdown.md; the two threads slow each other, so the gain varies between
+runs). :class:`SharedTasks` is work cut into tasks that whichever thread is free takes, so that a
+thread that would wait for the other helps instead (the candidate edges' view pairs, the landmark
+search's chunks of keypoints).
 
 The cores are shared out between the two threads, since torch's OpenMP workers spin while
 they wait and take a core from whatever else runs. The second thread's torch ops (descriptor

@@ -182,7 +182,7 @@ class CandidateJob:
     Pairs are taken from the last one back: the graph, built meanwhile on the solver's first
     thread, computes the shared best lists (:meth:`DescriptorSimilarity.most_similar`) from the
     first, so each thread makes some of them instead of one waiting for the other's (a 4 x 500
-    stream solve 2-3 ms faster, benchmarks/results/stage_breakdown.md).
+    stream solve 1.4 ms faster, window by window: benchmarks/results/stage_breakdown.md).
 
     Args: as :func:`candidate_edges`.
     """
