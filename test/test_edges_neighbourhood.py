@@ -45,6 +45,20 @@ def test_pairs_that_are_not_references_are_judged_against_the_references():
     assert shared[0] == 0 and shared[7] >= 6
 
 
+def test_counts_only_for_the_judged_pairs_are_those_of_all():
+    xa, xb = _grid()
+    wrong = xb.copy()
+    wrong[0] = xb[35]
+    ref = np.ones(len(xa), bool)
+    ref[7] = False
+    judged = np.zeros(len(xa), bool)
+    judged[[0, 7, 20]] = True
+    every = shared_neighbours(xa, wrong, ref, k=8)
+    some = shared_neighbours(xa, wrong, ref, k=8, judged=judged)
+    np.testing.assert_array_equal(some[judged], every[judged])
+    assert (some[~judged] == 8).all() and some[0] == 0
+
+
 def test_too_few_references_judge_nothing():
     xa, xb = _grid(3)  # 9 pairs
     wrong = xb.copy()

@@ -34,6 +34,8 @@ Pose-free and model-free; deterministic (a k-d tree's neighbours).
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -67,29 +69,35 @@ def _nearest_others(tree: cKDTree, points: np.ndarray, self_index: np.ndarray, k
     return np.take_along_axis(near, order, axis=1)[:, :k]
 
 
-def shared_neighbours(xa: np.ndarray, xb: np.ndarray, ref: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
+def shared_neighbours(xa: np.ndarray, xb: np.ndarray, ref: np.ndarray, k: int = NEIGHBOURS,
+                      judged: Optional[np.ndarray] = None) -> np.ndarray:
     """How many of its k nearest reference pairs each pair has in both views (module docstring).
 
     Args:
         xa, xb: the pairs' keypoints in view a and in view b (pixels).
         ref: which pairs are reference pairs (their neighbourhoods are counted).
         k: neighbours per view.
+        judged: the pairs whose count is wanted (default: all); the others get ``k`` uncounted
+            (a window's near-copies are few, its reference pairs hundreds).
 
     Returns:
         (M,) int64: shared neighbours, ``k`` for every pair when there are at most k reference
         pairs (too few to tell a neighbourhood from the whole view).
 
-    Shapes: xa, xb (M, 2), ref (M,) bool.
+    Shapes: xa, xb (M, 2), ref (M,) bool, judged (M,) bool.
     """
     m = xa.shape[0]
     ref_at = np.flatnonzero(ref)
+    shared = np.full(m, k, np.int64)
     if ref_at.size <= k or k == 0:
-        return np.full(m, k, np.int64)
+        return shared
+    wanted = np.arange(m) if judged is None else np.flatnonzero(judged)
     self_index = np.full(m, -1, np.int64)
     self_index[ref_at] = np.arange(ref_at.size)
-    near_a = _nearest_others(cKDTree(xa[ref_at]), xa, self_index, k)
-    near_b = _nearest_others(cKDTree(xb[ref_at]), xb, self_index, k)
-    return (near_a[:, :, None] == near_b[:, None, :]).any(axis=2).sum(axis=1)
+    near_a = _nearest_others(cKDTree(xa[ref_at]), xa[wanted], self_index[wanted], k)
+    near_b = _nearest_others(cKDTree(xb[ref_at]), xb[wanted], self_index[wanted], k)
+    shared[wanted] = (near_a[:, :, None] == near_b[:, None, :]).any(axis=2).sum(axis=1)
+    return shared
 
 
 def followed_pairs(keypoints: np.ndarray, view_index: np.ndarray, rows: np.ndarray, cols: np.ndarray,
@@ -110,6 +118,6 @@ def followed_pairs(keypoints: np.ndarray, view_index: np.ndarray, rows: np.ndarr
         if not judged[at].any():
             continue
         shared = shared_neighbours(keypoints[lo[at]].astype(np.float64), keypoints[hi[at]].astype(np.float64),
-                                   ref[at], k)
+                                   ref[at], k, judged[at])
         out[at] = ~judged[at] | (shared >= min_shared)
     return out
