@@ -110,7 +110,7 @@ def main(argv=None) -> int:
                      f"{np.percentile(t, 95):.1f} | {t.max():.1f} | {np.mean(t > 1e3 * SLOW * base):.0%} | "
                      f"{spin / pace if pace else 0:.2f} |")
     header = results_header("Idling between windows: solve time back to back and at 10 Hz", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
+                            argv, torch_threads=args.threads,
                             env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\n{run_note(seconds, speed_before)}\n\n"
             f"{views} x {keypoints} (synthetic.rome16k, the same window each time, one StreamState, landmarks "

@@ -192,7 +192,7 @@ def main(argv=None) -> int:
                f"{'met' if worst_p >= 0.95 else 'NOT met'}; fragmentation <= 1.2: worst {worst_f:.2f}, "
                f"{'met' if worst_f <= 1.2 else 'NOT met'}.")
     header = results_header("Persistent landmark ids on generated rig sequences", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=1, env=("OPENBLAS_NUM_THREADS",))
+                            argv, torch_threads=1, env=("OPENBLAS_NUM_THREADS",))
     text = "\n".join(header) + (
         f"\n\nSolver `{args.solver}` (one stream per sequence); {args.windows} windows per sequence, 1500 scene "
         "points, SIFT-like descriptors at the calibrated noise; ids by LandmarkTracker (defaults) and by the "

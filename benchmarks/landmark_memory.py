@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     verdict = (f"Live landmarks stay within {min(live)}–{max(live)} while {rows[-1][2]} were born; RSS from "
                f"{rss[0]:.0f} to {rss[-1]:.0f} MB after the first minute "
                f"({'flat' if rss[-1] - rss[0] < 0.1 * rss[0] + 20 else 'GROWING'}).")
-    header = results_header("Landmark state on a long stream", __file__, sys.argv[1:] if argv is None else argv,
+    header = results_header("Landmark state on a long stream", __file__, argv,
                             env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\n{cfg.n_cameras} cameras, {RATE_HZ} Hz, {cfg.n_points} scene points along "
             f"{length:.0f} m, true tracks; wall time {time.perf_counter() - start:.0f} s.\n\n"

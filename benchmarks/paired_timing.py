@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     verdict = (f"B - A per pair: median {np.median(diff):+.2f} ms, mean {mean:+.2f} ms (95 % bootstrap interval "
                f"{lo:+.2f} .. {hi:+.2f}); B faster in {int((diff < 0).sum())} of {diff.size} pairs.")
     header = results_header("Paired timing of two solvers (window by window)", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
+                            argv, torch_threads=args.threads,
                             env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\n{run_note(seconds, speed_before)}\n\n"
             f"{views} x {keypoints} (synthetic.rome16k, the same window every 100 ms of stream time, each "

@@ -144,7 +144,7 @@ def main(argv=None) -> int:
                                     title="Where one window's time goes (offline, median; 'other': outside the stages)")
     gpu = [f"GPU: {torch.cuda.get_device_name()}"] if torch.cuda.is_available() else []
     header = results_header("Per-stage time of one window (offline)", __file__,
-                            sys.argv[1:] if argv is None else argv, torch_threads=args.threads,
+                            argv, torch_threads=args.threads,
                             machine_extra=gpu, env=("OPENBLAS_NUM_THREADS",))
     text = ("\n".join(header) + f"\n\nMedian of {args.repeats} solves after one warm-up; stages in ms, exclusive of nested "
               "stages (gcn_match_ros.timing; gcn's candidates, with their similarity and geometry, run on a second "
