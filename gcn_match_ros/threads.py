@@ -27,20 +27,29 @@ rest of the process (the 4 x 500 network alone: 5 -> 10 ms after one torch op on
 the products are bitwise the same on one thread or two. While ``fn`` runs, the caller's torch
 keeps one core fewer (on 2 cores: one), and gets it back when ``fn``'s result is taken: the 4 x
 500 stream solve 45 -> 34 ms, solve outputs identical.
+
+:func:`pin_solve_threads` keeps the solving thread and the second thread on two CPUs of their
+own. A kernel that packs threads onto few CPUs while the load is light (this project's 2-core
+VM: its guest kernel runs with ``sched_vcpu_pack``) puts the second thread on the first one's CPU
+when a window starts after a pause, and spreads them only under sustained load: at 10 Hz a 4 x 500
+window then runs its two threads on one core for much of its time (p95 52 ms against 43 pinned,
+benchmarks/results/idle_wake.md).
 """
 from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import os
 import threading
-from typing import Any, Callable, Iterator, List, Optional, Sequence
+from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
 
 import torch
 from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "alongside", "deferred", "Pending", "SharedTasks", "one_torch_thread"]
+__all__ = ["single_blas_thread", "solve_cpus", "pin_solve_threads", "alongside", "deferred", "Pending", "SharedTasks",
+           "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None
@@ -53,6 +62,44 @@ def single_blas_thread() -> None:
     """Limit every BLAS library loaded in this process (numpy's OpenBLAS) to one thread, for
     the rest of the process; torch's own pool is left as it is."""
     threadpool_limits(limits=1, user_api="blas")
+
+
+def solve_cpus(first_cpu: int) -> Tuple[int, int]:
+    """The two CPUs :func:`pin_solve_threads` puts the solve's threads on: ``first_cpu`` and the
+    next CPU this process may use (its main thread's CPUs) after it, in CPU order, wrapping around.
+
+    Raises:
+        ValueError: ``first_cpu`` not among the process's CPUs, fewer than two of them, or no
+            thread placement on this platform.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        raise ValueError("placing threads on CPUs needs os.sched_setaffinity (Linux)")
+    allowed = sorted(os.sched_getaffinity(os.getpid()))
+    if first_cpu not in allowed:
+        raise ValueError(f"CPU {first_cpu} is not one this process may use "
+                         f"(CPUs {', '.join(str(c) for c in allowed)})")
+    if len(allowed) < 2:
+        raise ValueError(f"two threads need two CPUs; this process may use only CPU {allowed[0]}")
+    return first_cpu, allowed[(allowed.index(first_cpu) + 1) % len(allowed)]
+
+
+def pin_solve_threads(first_cpu: int) -> Tuple[int, int]:
+    """From now on, run the calling thread (the one that solves) on CPU ``first_cpu`` alone and
+    the process's second thread (:func:`alongside`) on the next one (:func:`solve_cpus`); see the
+    module docstring for why. torch then runs on one thread: the OpenMP workers it starts
+    would inherit the calling thread's CPU and share it with that thread.
+
+    Returns:
+        (the calling thread's CPU, the second thread's CPU).
+
+    Raises:
+        ValueError: as :func:`solve_cpus`; nothing is changed then.
+    """
+    first, second = solve_cpus(first_cpu)
+    os.sched_setaffinity(0, {first})  # 0: the calling thread
+    _second_thread().submit(os.sched_setaffinity, 0, {second}).result()
+    torch.set_num_threads(1)
+    return first, second
 
 
 class Pending:

@@ -2,6 +2,7 @@
 beside the caller on a second thread."""
 import contextlib
 import functools
+import os
 import threading
 import time
 
@@ -10,7 +11,8 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import SharedTasks, alongside, deferred, one_torch_thread, single_blas_thread
+from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, deferred, one_torch_thread,
+                                   pin_solve_threads, single_blas_thread, solve_cpus)
 from gcn_match_ros.timing import StageTimes, stage
 
 
@@ -235,3 +237,41 @@ def test_shared_tasks_hand_the_first_error_to_the_caller_and_take_nothing_after_
     assert ran == [0, 1]
     with pytest.raises(ValueError, match="each of the 2 task positions once"):
         SharedTasks([int, int], order=[0, 0])
+
+
+_ALLOWED = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+
+
+@pytest.mark.skipif(len(_ALLOWED) < 2, reason="needs Linux and two CPUs this process may use")
+def test_solve_cpus_are_the_given_one_and_the_next_allowed_wrapping_around():
+    assert solve_cpus(_ALLOWED[0]) == (_ALLOWED[0], _ALLOWED[1])
+    assert solve_cpus(_ALLOWED[-1]) == (_ALLOWED[-1], _ALLOWED[0])
+    with pytest.raises(ValueError, match="not one this process may use"):
+        solve_cpus(max(_ALLOWED) + 1)
+
+
+@pytest.mark.skipif(len(_ALLOWED) < 2, reason="needs Linux and two CPUs this process may use")
+def test_pin_solve_threads_puts_the_caller_and_the_second_thread_on_a_cpu_each():
+    """Called from a thread that solves (the node's worker), as the node does."""
+    torch_threads = torch.get_num_threads()
+    second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
+    seen = {}
+
+    def worker():
+        seen["cpus"] = pin_solve_threads(_ALLOWED[1])
+        seen["mine"] = os.sched_getaffinity(0)
+        seen["torch"] = torch.get_num_threads()
+        with alongside(lambda: os.sched_getaffinity(0)) as pending:  # the work beside runs there
+            seen["beside"] = pending.result()
+
+    try:
+        t = threading.Thread(target=worker)
+        t.start()
+        t.join()
+        first, second = seen["cpus"]
+        assert (first, second) == solve_cpus(_ALLOWED[1])
+        assert seen["mine"] == {first} and seen["beside"] == {second} and seen["torch"] == 1
+        assert os.sched_getaffinity(0) == set(_ALLOWED)  # other threads stay where they were
+    finally:
+        _second_thread().submit(os.sched_setaffinity, 0, second_before).result()
+        torch.set_num_threads(torch_threads)
