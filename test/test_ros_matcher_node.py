@@ -515,6 +515,7 @@ def test_matcher_process_exits_nonzero_on_bad_startup(tmp_path):
     ({"solver": "nn", "cameras": ["cam0"]}, "at least 2"),
     ({"solver": "nn", "cameras": ["cam 0", "cam1"]}, "valid topic name"),
     ({"solver": "nn", "sync_tolerance": 1}, "sync_tolerance"),  # wrong type (int for a double)
+    ({"solver": "nn", "cpu_affinity": 4095}, "cpu_affinity=4095: CPU 4095 is not one this process may use"),
 ])
 def test_matcher_startup_errors_are_clear(params, message):
     with RosSession("tester", domain_id=domain_id()) as session:
@@ -542,6 +543,37 @@ def test_matcher_process_sigterm_clean_exit():
             proc.kill()
         out = proc.communicate(timeout=10)[0]
     assert rc == 0, out
+    assert "Traceback" not in out, out
+
+
+@pytest.mark.skipif(len(getattr(os, "sched_getaffinity", lambda _: ())(0)) < 2,
+                    reason="needs Linux and two CPUs this process may use")
+def test_matcher_process_solves_on_the_cpus_cpu_affinity_names():
+    """cpu_affinity: the worker and the solver's second thread each on a CPU of their own, named
+    in /diagnostics (a process of its own: pinning would outlive the test in this one)."""
+    allowed = sorted(os.sched_getaffinity(0))
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    env = _node_env()
+    proc = subprocess.Popen(_matcher_cmd("solver:=nn", "diagnostics_period:=0.1", f"cpu_affinity:={allowed[-1]}",
+                                         ns=ns), env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, cwd=REPO)
+    try:
+        with RosSession("tester", domain_id=int(env["ROS_DOMAIN_ID"])) as session:
+            reports = session.collect(DiagnosticArray, "/diagnostics")
+            want = f"{allowed[-1]}, {allowed[0]}"  # the next one after the last: wrapped around
+            seen = session.spin_until(lambda: proc.poll() is not None or any(
+                (diagnostic_values(r, f"{ns}/matcher_node") or (None, {}))[1].get("solve CPUs") == want
+                for r in reports),
+                timeout=60)
+            assert seen and proc.poll() is None, f"no diagnostics naming CPUs {want} from {ns}/matcher_node"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        out = proc.communicate(timeout=10)[0]
     assert "Traceback" not in out, out
 
 

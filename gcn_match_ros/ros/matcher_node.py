@@ -60,7 +60,7 @@ from ..problem import Problem
 from ..rounding import compile_plain_merge
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
-from ..threads import single_blas_thread
+from ..threads import pin_solve_threads, single_blas_thread, solve_cpus
 from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, trim_frame, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
@@ -168,6 +168,13 @@ class _Matcher:
         self._landmarks = bool(p["landmarks"])
         self._input_qos = p["input_qos"]
         self._diagnostics_period = float(p["diagnostics_period"])
+        self._cpu_affinity = int(p["cpu_affinity"])
+        if self._cpu_affinity >= 0:
+            try:
+                solve_cpus(self._cpu_affinity)
+            except ValueError as exc:
+                raise StartupError(f"parameter cpu_affinity={self._cpu_affinity}: {exc}") from None
+        self._solve_cpus = "any"
 
         t0 = time.perf_counter()
         single_blas_thread()
@@ -361,6 +368,13 @@ class _Matcher:
 
     # -- inference worker -----------------------------------------------------------------
     def _worker_loop(self) -> None:
+        if self._cpu_affinity >= 0:
+            try:
+                self._solve_cpus = ", ".join(str(c) for c in pin_solve_threads(self._cpu_affinity))
+                self.get_logger().info(f"solving on CPUs {self._solve_cpus}")
+            except (ValueError, OSError) as exc:  # the CPUs were taken away since configure
+                self.get_logger().error(f"cpu_affinity={self._cpu_affinity}: {exc}; the OS places the solve's "
+                                        "threads")
         while True:
             with self._cv:
                 while self._pending is None and not self._stopping:
@@ -452,7 +466,7 @@ class _Matcher:
             status = self._stats.report(
                 f"{self.get_name()}: matcher", self.get_fully_qualified_name(), self._assembler.drops,
                 self._assembler.descriptor_dim, busy, pending, stale_after=max(2.0 * self._diagnostics_period, 1.0),
-                extra={"solver": self._method, "rig models reused": str(self._stream.rig.reused),
+                extra={"solver": self._method, "solve CPUs": self._solve_cpus, "rig models reused": str(self._stream.rig.reused),
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),
                        "rig pairs skipped (backing off)": str(self._stream.rig.skipped),
