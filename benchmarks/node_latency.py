@@ -46,6 +46,7 @@ from gcn_match_ros.experiments import describe_machine, python_speed, results_he
 REPO = Path(__file__).resolve().parents[1]
 
 GOAL = (4, 500, 0.050)  # cameras, keypoints per view, p95 seconds (with no drops at 10 Hz)
+AFFINITY = {False: "the OS places the solve's threads", True: "the solve's two threads pinned, a CPU each"}
 
 
 def _parser():
@@ -65,6 +66,8 @@ def _parser():
                         "moving: a generated rig driving through a scene, forth and back")
     p.add_argument("--landmarks", default="true", choices=("true", "false"),
                    help="the node's landmarks parameter (false: no temporal association, to measure its cost)")
+    p.add_argument("--cpu-affinity", type=int, default=-1,
+                   help="the node's cpu_affinity parameter (default -1: the OS places the solve's threads)")
     p.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "node_latency.md")
     return p
@@ -155,7 +158,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     cmd = [sys.executable, "-m", "gcn_match_ros.ros.matcher_node", "--ros-args", "-r", f"__ns:={ns}",
            "-p", f"cameras:=[{','.join(cams)}]", "-p", f"solver:={solver}", "-p", f"input_qos:={args.input_qos}",
            "-p", f"max_keypoints:={max_keypoints(n_kp)}", "-p", "diagnostics_period:=0.5",
-           "-p", f"landmarks:={args.landmarks}",
+           "-p", f"landmarks:={args.landmarks}", "-p", f"cpu_affinity:={args.cpu_affinity}",
            "--log-level", "warn"]
     log = tempfile.NamedTemporaryFile("w+", prefix="node_latency-", suffix=".log", delete=False)
     node_proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
@@ -340,7 +343,7 @@ def main(argv=None) -> int:
     doc = "\n".join(header) + f"""
 {run_note(seconds, speed_before)}
 
-Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}; every camera publishes one
+Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}, node parameter `cpu_affinity:={args.cpu_affinity}` ({AFFINITY[args.cpu_affinity >= 0]}); every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz
 (all stamped with the capture time; synthetic SIFT-like 128-D descriptors; {SCENES[args.scene]}), {args.duration:g} s measured after
 {args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,
