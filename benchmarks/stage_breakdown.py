@@ -3,11 +3,14 @@
 
 Solves synthetic windows (``synthetic.rome16k``: SIFT-like 128-D descriptors of a 3D scene,
 the node benchmark's input) of every (views, keypoints per view) configuration with each
-solver, ``--repeats`` times after one warm-up solve, and reports the median of every stage
-that :mod:`gcn_match_ros.timing` records (similarity, graph, candidates, geometry, network,
-edge_head, rounding, match), the median total, the total relative to the first solver's
-(``nn`` by default: the issue's "x nn" figure) and the peak resident memory growth of the
-solves (``tracemalloc`` does not see torch's allocator, so the process RSS is read).
+solver, in ``--repeats`` rounds after a warm-up (each round solves once with every solver of
+the configuration, so that the machine's drift reaches all alike), and reports the median of
+every stage that :mod:`gcn_match_ros.timing` records (similarity, graph, candidates, geometry,
+network, edge_head, rounding, match), the median total, the total relative to the first
+solver's in the same round (median over the rounds; ``nn`` by default: the issue's "x nn"
+figure) and the peak resident memory growth of one solve after the warm-up (``tracemalloc``
+does not see torch's allocator, so the process RSS is read; the peak is the process's, so a
+solve shows only what it adds to the peaks before it).
 
 Every solver runs twice: each window on its own ("cold": every two-view model fitted), and
 as a stream of that rig (one :class:`gcn_match_ros.stream.StreamState` across the repeats,
@@ -78,33 +81,63 @@ def rig_window(views: int, keypoints: int):
     return problem
 
 
-def measure(spec: str, views: int, keypoints: int, repeats: int, stream: bool) -> dict:
-    problem = rig_window(views, keypoints)
-    solver = solvers.create(spec)
-    state = StreamState() if stream else None
-    # warm-up: model load, first-call allocations (and the first fits, the first landmarks)
-    if stream:
-        solve_window(solver, problem, state, 0)
-    else:
-        solver.solve(problem)
-    before = _rss_mb()
-    totals, associations, stages = [], [], {s: [] for s in STAGES}
-    for k in range(repeats):
+class Variant:
+    """One solver on one window, alone (``stream`` False) or as a stream of that rig, with its
+    timings so far."""
+
+    def __init__(self, spec: str, views: int, keypoints: int, stream: bool) -> None:
+        self.problem = rig_window(views, keypoints)
+        self.solver = solvers.create(spec)
+        self.stream = stream
+        self.state = StreamState() if stream else None
+        self.totals, self.landmarks, self.stages = [], [], {s: [] for s in STAGES}
+        self.spec = self.solver.describe() + (" (stream)" if stream else "")
+
+    def solve(self, k: int) -> None:
+        """The k-th solve, timed (the stream's stamps 100 ms apart)."""
         t0 = time.perf_counter()
-        if stream:  # the node's path: the solve, then the landmark association (10 Hz stamps)
-            result, landmarks = solve_window(solver, problem, state, (k + 1) * 10**8)
-            associations.append(landmarks.seconds)
-            totals.append(result.seconds)
+        if self.stream:  # the node's path: the solve, then the landmark association
+            result, landmarks = solve_window(self.solver, self.problem, self.state, (k + 1) * 10**8)
+            self.landmarks.append(landmarks.seconds)
+            self.totals.append(result.seconds)
         else:
-            result = solver.solve(problem)
-            totals.append(time.perf_counter() - t0)
+            result = self.solver.solve(self.problem)
+            self.totals.append(time.perf_counter() - t0)
         for s in STAGES:
-            stages[s].append(result.timings.get(s, 0.0))
-    return {"spec": solver.describe() + (" (stream)" if stream else ""), "views": views,
-            "keypoints": problem.n_keypoints,
-            "total": float(np.median(totals)), "stages": {s: float(np.median(v)) for s, v in stages.items()},
-            "landmarks": float(np.median(associations)) if associations else None,
-            "rss_growth": _rss_mb() - before}
+            self.stages[s].append(result.timings.get(s, 0.0))
+
+    def warm_up(self) -> float:
+        """One untimed solve (model load, first-call allocations, the first fits and landmarks),
+        then one more; returns the peak resident memory growth of that second solve [MB]."""
+        self.solve(-1)
+        before = _rss_mb()
+        self.solve(0)
+        self.totals.clear()
+        self.landmarks.clear()
+        for times in self.stages.values():
+            times.clear()
+        return _rss_mb() - before
+
+
+def measure(specs, views: int, keypoints: int, repeats: int) -> list:
+    """Every solver of ``specs``, alone and as a stream, on the same window: each warmed up in
+    turn, then ``repeats`` rounds that solve once with each (so the machine's drift, a quarter
+    within minutes on this project's VM, reaches all alike).
+
+    Returns: per variant, {"spec", "views", "keypoints", "total" (median s), "stages" (medians),
+    "landmarks" (median s or None), "rss_growth" (MB), "ratio" (the median of its time over the
+    first variant's in the same round)}."""
+    variants = [Variant(spec, views, keypoints, stream) for spec in specs for stream in (False, True)]
+    growth = [v.warm_up() for v in variants]
+    for k in range(repeats):
+        for v in variants:
+            v.solve(k + 1)
+    first = np.asarray(variants[0].totals)
+    return [{"spec": v.spec, "views": views, "keypoints": v.problem.n_keypoints,
+             "total": float(np.median(v.totals)), "stages": {s: float(np.median(x)) for s, x in v.stages.items()},
+             "landmarks": float(np.median(v.landmarks)) if v.landmarks else None, "rss_growth": g,
+             "ratio": float(np.median(np.asarray(v.totals) / first))}
+            for v, g in zip(variants, growth)]
 
 
 def main(argv=None) -> int:
@@ -114,14 +147,9 @@ def main(argv=None) -> int:
     rows = []
     for cfg in args.configs:
         views, keypoints = (int(x) for x in cfg.lower().split("x"))
-        ref = None
-        for spec in args.solvers:
-            for stream in (False, True):
-                r = measure(spec, views, keypoints, args.repeats, stream)
-                ref = ref if ref is not None else r["total"]
-                r["ratio"] = r["total"] / ref
-                rows.append(r)
-                print(f"{views} x {keypoints}: {r['spec']}: {1e3 * r['total']:.1f} ms ({r['ratio']:.1f}x)", flush=True)
+        for r in measure(args.solvers, views, keypoints, args.repeats):
+            rows.append(r)
+            print(f"{views} x {keypoints}: {r['spec']}: {1e3 * r['total']:.1f} ms ({r['ratio']:.1f}x)", flush=True)
     head = ("| window | solver | " + " | ".join(STAGES) + " | total [ms] | x first | landmarks [ms] | "
             "with / without landmarks | peak RSS growth [MB] |")
     lines = [head, "|" + "---|" * (len(STAGES) + 7)]
@@ -146,7 +174,9 @@ def main(argv=None) -> int:
     header = results_header("Per-stage time of one window (offline)", __file__,
                             argv, torch_threads=args.threads,
                             machine_extra=gpu, env=("OPENBLAS_NUM_THREADS",))
-    text = ("\n".join(header) + f"\n\nMedian of {args.repeats} solves after one warm-up; stages in ms, exclusive of nested "
+    text = ("\n".join(header) + f"\n\nMedian of {args.repeats} rounds after a warm-up, each round one solve with every row's solver of the "
+              "window in turn; 'x first': the median over the rounds of the total over the first row's in the same "
+              "round; stages in ms, exclusive of nested "
               "stages (gcn_match_ros.timing; gcn's candidates, with their similarity and geometry, run on a second "
               "thread beside its graph and network: its stages then add up to more than its total, and 'waiting' "
               "is the time the solve idled for that thread; gcn:parallel=false is the same solve on one thread); windows: synthetic.rome16k, SIFT-like descriptors. Stream rows "
