@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, EdgeConfig, _ranks, _triangle_support,
-                                            candidate_edges)
+from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, CandidateJob, EdgeConfig, _ranks,
+                                            _triangle_support, candidate_edges)
 from gcn_match_ros.descriptors import normalize_descriptors
 
 from conftest import permuted_views_problem
@@ -70,6 +70,31 @@ def test_candidate_features_match_their_definitions():
                 true_pairs.add((a, b))
     found = set(zip(es.rows.tolist(), es.cols.tolist()))
     assert len(true_pairs & found) >= 0.9 * len(true_pairs)
+
+
+def test_a_keep_rule_gives_the_kept_candidates_with_the_features_they_have_among_all():
+    """Only the kept candidates get features, the same as among every candidate: their
+    triangle support still counts through the candidates not kept."""
+    problem = permuted_views_problem(n_views=4, n_points=40, dim=32, noise=0.3, seed=5)
+    config = EdgeConfig(k=3, geometry=False, guided=False)
+    every = candidate_edges(problem, config)
+    seen = {}
+
+    def keep(rows, cols, models):
+        seen.update(rows=rows, cols=cols, models=models)
+        return (rows + cols) % 3 == 0
+
+    job = CandidateJob(problem, config, keep=keep)
+    kept = job.result()
+    np.testing.assert_array_equal(seen["rows"], every.rows)
+    np.testing.assert_array_equal(seen["cols"], every.cols)
+    assert seen["models"] == every.models and job.candidates == every.rows.shape[0]
+    wanted = every.subset((every.rows + every.cols) % 3 == 0)
+    assert 0 < kept.rows.shape[0] < every.rows.shape[0]
+    tri = [EDGE_FEATURES.index("tri_all"), EDGE_FEATURES.index("tri_conf")]
+    assert wanted.features[:, tri].any()  # the check below reads some triangles
+    for field in ("rows", "cols", "features", "res_px", "confident"):
+        np.testing.assert_array_equal(getattr(kept, field), getattr(wanted, field))
 
 
 def test_no_candidates_for_single_keypoint_views():

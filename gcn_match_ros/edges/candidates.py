@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numba
 import numpy as np
@@ -184,12 +184,22 @@ class CandidateJob:
     first, so each thread makes some of them instead of one waiting for the other's (a 4 x 500
     stream solve 1.4 ms faster, window by window: benchmarks/results/stage_breakdown.md).
 
-    Args: as :func:`candidate_edges`.
+    Args: as :func:`candidate_edges`, and
+        keep: the candidates the caller will read, ``keep(rows, cols, models) -> (M,) bool``
+            given every candidate and the view pairs' models (:attr:`EdgeSet.models`): the
+            result holds only those, and only they get features (the triangle support, the
+            dearest, still counts through every candidate). None: every candidate.
+
+    Attributes:
+        candidates: how many candidates there were before ``keep``, once :meth:`result` is done.
     """
 
     def __init__(self, problem: Problem, config: EdgeConfig = EdgeConfig(),
-                 similarity: Optional[DescriptorSimilarity] = None, rig: Optional[RigMemory] = None) -> None:
-        self._problem, self._config, self._rig = problem, config, rig
+                 similarity: Optional[DescriptorSimilarity] = None, rig: Optional[RigMemory] = None,
+                 keep: Optional[Callable[[np.ndarray, np.ndarray, Dict[ViewPair, Optional[PairModel]]],
+                                         np.ndarray]] = None) -> None:
+        self._problem, self._config, self._rig, self._keep = problem, config, rig, keep
+        self.candidates = 0
         self._similarity = similarity if similarity is not None else DescriptorSimilarity(problem)
         self._kp = problem.keypoints.astype(np.float64)
         offs = problem.view_offsets
@@ -230,32 +240,41 @@ class CandidateJob:
         parts = [part for part, _ in done]
         starts = [(int(offs[i]), int(offs[j])) for i, j in self._pairs]
         models: Dict[ViewPair, Optional[PairModel]] = {pair: model for pair, (_, model) in zip(self._pairs, done)}
-        if not parts:
+        self.candidates = sum(len(p.ea) for p in parts)
+        if not self.candidates:
             z = np.zeros(0, np.int64)
             return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool),
                            models)
+        rows = np.concatenate([p.ea + a0 for p, (a0, _) in zip(parts, starts)]).astype(np.int64)
+        colsi = np.concatenate([p.eb + b0 for p, (_, b0) in zip(parts, starts)]).astype(np.int64)
+        conf_all = np.concatenate([p.confident for p in parts])
+        at = None
+        if self._keep is not None:
+            with stage("rounding"):
+                at = np.flatnonzero(self._keep(rows, colsi, models))
 
         def cat(field: str) -> np.ndarray:
-            return np.concatenate([getattr(p, field) for p in parts])
+            column = np.concatenate([getattr(p, field) for p in parts])
+            return column if at is None else column.take(at)
 
-        rows = np.concatenate([p.ea + a0 for p, (a0, _) in zip(parts, starts)])
-        colsi = np.concatenate([p.eb + b0 for p, (_, b0) in zip(parts, starts)])
         s, ra, rb = cat("cosine"), cat("ratio_a"), cat("ratio_b")
         rka, rkb = cat("rank_a").astype(np.float64), cat("rank_b").astype(np.float64)
         mutual, conf = cat("mutual"), cat("confident")
         rh, rf = cat("res_h"), cat("res_f")
         hasm = np.concatenate([np.full(len(p.ea), p.model_kind) for p in parts])
+        hasm = hasm if at is None else hasm.take(at)
         has, planar = (hasm > 0).astype(np.float64), (hasm == 2).astype(np.float64)
         guided = cat("guided")
         view = problem.view_index
-        tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool))
-        tri_conf = _triangle_support(n, V, view, rows, colsi, conf)
+        scored_rows, scored_cols = (rows, colsi) if at is None else (rows.take(at), colsi.take(at))
+        tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool), scored_rows, scored_cols)
+        tri_conf = _triangle_support(n, V, view, rows, colsi, conf_all, scored_rows, scored_cols)
         rmin = np.minimum(rh, rf)
-        feats = np.empty((rows.shape[0], len(EDGE_FEATURES)), np.float32)  # column by column: no float64 copy
+        feats = np.empty((scored_rows.shape[0], len(EDGE_FEATURES)), np.float32)  # column by column: no float64 copy
         for k, column in enumerate([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf, tri_all, tri_conf,
                                     _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided]):
             feats[:, k] = column
-        return EdgeSet(rows.astype(np.int64), colsi.astype(np.int64), feats, rmin, conf, models)
+        return EdgeSet(scored_rows, scored_cols, feats, rmin, conf, models)
 
 
 def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
@@ -431,16 +450,19 @@ def _distances_to_line(out, line, norm, x, y):
         out[b] = abs(l0 * x[b] + l1 * y[b] + l2) / norm
 
 
-def _triangle_support(n, V, view, rows, cols, mask) -> np.ndarray:
-    """Fraction of third views closing a triangle with each edge through ``mask`` edges.
+def _triangle_support(n, V, view, rows, cols, mask, at_rows=None, at_cols=None) -> np.ndarray:
+    """Fraction of third views closing a triangle through ``mask`` edges with each edge of
+    (``at_rows``, ``at_cols``); by default the edges (``rows``, ``cols``) themselves.
 
-    Shapes: view (n,); rows, cols, mask (M,) -> (M,) float64.
+    Shapes: view (n,); rows, cols, mask (M,); at_rows, at_cols (K,) -> (K,) float64.
     """
+    if at_rows is None:
+        at_rows, at_cols = rows, cols
     if V < 3:
-        return np.zeros(rows.shape[0])
+        return np.zeros(at_rows.shape[0])
     indptr, indices = _neighbour_lists(n, np.asarray(rows[mask], np.int64), np.asarray(cols[mask], np.int64))
-    views_seen = _common_neighbour_views(indptr, indices, np.asarray(view, np.int64), np.asarray(rows, np.int64),
-                                         np.asarray(cols, np.int64), V)
+    views_seen = _common_neighbour_views(indptr, indices, np.asarray(view, np.int64), np.asarray(at_rows, np.int64),
+                                         np.asarray(at_cols, np.int64), V)
     return views_seen / (V - 2)
 
 

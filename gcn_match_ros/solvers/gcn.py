@@ -328,7 +328,14 @@ class GCNSolver(Solver):
         # computed on the second thread meanwhile (threads.alongside), and this thread takes
         # the view pairs still left once its network is done; the stage "waiting" is the time
         # it then idles for the pairs the second thread is on.
-        job = CandidateJob(problem, edges, similarity, rig) if edges is not None else None
+        # Verification drops the pairs that disagree with their view pair's trusted model
+        # whatever their score (80-94 % of the candidates of generated and real windows): they
+        # get no features and are not scored. Every later step reads only pairs it may keep, so
+        # the published pairs and tracks are the same. (Rotation cycles may still drop a model,
+        # which turns its view pair's pairs into scored ones: there every candidate is kept.)
+        verifying = edges is not None and self.config.verify and edges.geometry and not self.config.rotation_cycles
+        keep = _MayKeep(problem, self.config.unverified_threshold, edges) if verifying else None
+        job = CandidateJob(problem, edges, similarity, rig, keep) if edges is not None else None
         with alongside(_timed_candidates, job, parallel=self.config.parallel and job is not None) as candidates:
             if beside is not None and self.config.parallel:
                 beside.start()  # the caller's work (Solver.solve), queued behind the candidate edges
@@ -355,17 +362,9 @@ class GCNSolver(Solver):
                     job.help()
                 with stage("waiting"):
                     es = candidates.result()
-                if es.rows.shape[0] == 0:
+                if job.candidates == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
-                geometry = self._geometry(problem, es, edges)
-                if geometry is not None and not self.config.rotation_cycles:
-                    # Verification drops the pairs that disagree with their view pair's trusted
-                    # model whatever their score (80-94 % of the candidates of generated and real
-                    # windows): they are not scored. Every later step reads only pairs it may keep,
-                    # so the published pairs and tracks are the same. (Rotation cycles may still
-                    # drop a model, which turns its view pair's pairs into scored ones.)
-                    with stage("rounding"):
-                        es = es.subset(geometry.may_keep(es.rows, es.cols))
+                geometry = keep.geometry if keep is not None else self._geometry(problem, es, edges)
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es,
                                                                             parallel=self.config.parallel))
@@ -400,6 +399,20 @@ class GCNSolver(Solver):
                                           planar_threshold=self.planar_threshold,
                                           support_threshold=self.config.support_threshold)
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
+
+
+class _MayKeep:
+    """The candidate edges' ``keep`` rule when the solve verifies: the pairs the window's trusted
+    models may keep (:meth:`WindowGeometry.may_keep`); the geometry it built stays for the
+    verification of the scored pairs."""
+
+    def __init__(self, problem: Problem, unverified_threshold: float, edges: EdgeConfig) -> None:
+        self._problem, self._threshold, self._edges = problem, unverified_threshold, edges
+        self.geometry: Optional[WindowGeometry] = None
+
+    def __call__(self, rows: np.ndarray, cols: np.ndarray, models) -> np.ndarray:
+        self.geometry = WindowGeometry(self._problem, models, self._threshold, self._edges)
+        return self.geometry.may_keep(rows, cols)
 
 
 def _timed_candidates(job: CandidateJob):
