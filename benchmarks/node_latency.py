@@ -343,7 +343,8 @@ def main(argv=None) -> int:
     doc = "\n".join(header) + f"""
 {run_note(seconds, speed_before)}
 
-Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}, node parameter `cpu_affinity:={args.cpu_affinity}` ({AFFINITY[args.cpu_affinity >= 0]}); every camera publishes one
+Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}, node parameter
+`cpu_affinity:={args.cpu_affinity}` ({AFFINITY[args.cpu_affinity >= 0]}); every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz
 (all stamped with the capture time; synthetic SIFT-like 128-D descriptors; {SCENES[args.scene]}), {args.duration:g} s measured after
 {args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,

@@ -466,7 +466,8 @@ class _Matcher:
             status = self._stats.report(
                 f"{self.get_name()}: matcher", self.get_fully_qualified_name(), self._assembler.drops,
                 self._assembler.descriptor_dim, busy, pending, stale_after=max(2.0 * self._diagnostics_period, 1.0),
-                extra={"solver": self._method, "solve CPUs": self._solve_cpus, "rig models reused": str(self._stream.rig.reused),
+                extra={"solver": self._method, "solve CPUs": self._solve_cpus,
+                       "rig models reused": str(self._stream.rig.reused),
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),
                        "rig pairs skipped (backing off)": str(self._stream.rig.skipped),
