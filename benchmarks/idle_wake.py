@@ -22,9 +22,9 @@ Each mode also reports the process's CPU time a window (both threads): where two
 share one core, a window's wall time follows it. A second table checks the machine for that
 without the matcher: bursts of a fixed compiled loop (``--burst-ms`` on one core) run on two
 threads at once (the caller and a long-lived worker, as the solver's second thread), one burst
-after another, from right after a pause of ``PERIOD_S`` minus a window or back to back. Their
-wall time against one thread's burst alone is 1.0 where the two threads get a core each and 2.0
-where they share one.
+after another for ``PAUSE_S`` from right after a pause of ``PAUSE_S``, or back to back; the two
+threads placed by the OS, or pinned. Their wall time against one thread's burst alone is 1.0
+where the two threads get a core each and 2.0 where they share one.
 
 Usage::
 
