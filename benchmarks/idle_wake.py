@@ -16,7 +16,7 @@ landmarks on, as the node) solved in rounds that alternate the modes (so drift h
 - 10 Hz, spin L ms: the same, but the thread busy-waits the last L ms before each window
   (what keeping the CPU out of its idle state would buy, at L / 100 ms of a core);
 - pinned: back to back and at 10 Hz with the solve's two threads each on a CPU of its own
-  (:func:`gcn_match_ros.threads.pin_solve_threads`, the node's ``cpu_affinity``).
+  (:func:`gcn_match_ros.threads.pinned_solve_threads`, the node's ``cpu_affinity``).
 
 Each mode also reports the process's CPU time a window (both threads): where two busy threads
 share one core, a window's wall time follows it. A second table checks the machine for that
@@ -48,7 +48,7 @@ import torch
 from gcn_match_ros import solvers
 from gcn_match_ros.experiments import python_speed, results_header, run_note
 from gcn_match_ros.stream import StreamState, solve_window
-from gcn_match_ros.threads import pin_solve_threads, solve_cpus
+from gcn_match_ros.threads import pinned_solve_threads, solve_cpus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from stage_breakdown import rig_window  # noqa: E402  (the same window as its stream rows)
@@ -174,24 +174,10 @@ def two_thread_bursts(steps: int, alone: float, pauses: int, cpus=None):
     return after_pause, back_to_back
 
 
-@contextlib.contextmanager
-def _placed(pin: bool, first_cpu: int, torch_threads: int):
-    """With ``pin``: this thread and the second thread pinned inside the block (pin_solve_threads),
-    everything as before after it."""
-    if not pin:
-        yield
-        return
-    from gcn_match_ros.threads import _second_thread
-
-    mine = os.sched_getaffinity(0)
-    second = _second_thread().submit(os.sched_getaffinity, 0).result()
-    pin_solve_threads(first_cpu)
-    try:
-        yield
-    finally:
-        os.sched_setaffinity(0, mine)
-        _second_thread().submit(os.sched_setaffinity, 0, second).result()
-        torch.set_num_threads(torch_threads)
+def _placed(pin: bool, first_cpu: int):
+    """With ``pin``: this thread and the second thread pinned inside the block, as the node's worker
+    (:func:`pinned_solve_threads`)."""
+    return pinned_solve_threads(first_cpu) if pin else contextlib.nullcontext()
 
 
 def _timed_burn(steps: int) -> float:
@@ -241,7 +227,7 @@ def main(argv=None) -> int:
     cpu = {name: [] for name, *_ in modes}
     for r in range(args.rounds):
         for name, pace, spin, pin in (modes if r % 2 == 0 else modes[::-1]):
-            with _placed(pin, args.cpu_affinity, args.threads):
+            with _placed(pin, args.cpu_affinity):
                 got, got_cpu, stamp = timed_windows(solver, problem, state, args.windows, stamp, pace, spin)
             times[name] += got
             cpu[name] += got_cpu

@@ -28,7 +28,7 @@ the products are bitwise the same on one thread or two. While ``fn`` runs, the c
 keeps one core fewer (on 2 cores: one), and gets it back when ``fn``'s result is taken: the 4 x
 500 stream solve 45 -> 34 ms, solve outputs identical.
 
-:func:`pin_solve_threads` keeps the solving thread and the second thread on two CPUs of their
+:func:`pinned_solve_threads` keeps the solving thread and the second thread on two CPUs of their
 own. A kernel that packs threads onto few CPUs while the load is light (this project's 2-core
 VM: its guest kernel runs with ``sched_vcpu_pack``) puts the second thread on the first one's CPU
 when a window starts after a pause, and spreads them only under sustained load: at 10 Hz a 4 x 500
@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "solve_cpus", "pin_solve_threads", "alongside", "deferred", "Pending", "SharedTasks",
+__all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "alongside", "deferred", "Pending", "SharedTasks",
            "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
@@ -65,7 +65,7 @@ def single_blas_thread() -> None:
 
 
 def solve_cpus(first_cpu: int) -> Tuple[int, int]:
-    """The two CPUs :func:`pin_solve_threads` puts the solve's threads on: ``first_cpu`` and the
+    """The two CPUs :func:`pinned_solve_threads` puts the solve's threads on: ``first_cpu`` and the
     next CPU this process may use (its main thread's CPUs) after it, in CPU order, wrapping around.
 
     Raises:
@@ -83,23 +83,33 @@ def solve_cpus(first_cpu: int) -> Tuple[int, int]:
     return first_cpu, allowed[(allowed.index(first_cpu) + 1) % len(allowed)]
 
 
-def pin_solve_threads(first_cpu: int) -> Tuple[int, int]:
-    """From now on, run the calling thread (the one that solves) on CPU ``first_cpu`` alone and
-    the process's second thread (:func:`alongside`) on the next one (:func:`solve_cpus`); see the
-    module docstring for why. torch then runs on one thread: the OpenMP workers it starts
-    would inherit the calling thread's CPU and share it with that thread.
+@contextlib.contextmanager
+def pinned_solve_threads(first_cpu: int) -> Iterator[Tuple[int, int]]:
+    """Inside the block, the calling thread (the one that solves) runs on CPU ``first_cpu`` alone
+    and the process's second thread (:func:`alongside`) on the next one (:func:`solve_cpus`);
+    see the module docstring for why. torch runs on one thread meanwhile: the OpenMP workers it
+    starts would inherit the calling thread's CPU and share it with that thread. Both threads'
+    CPUs and torch's thread count are as before once the block ends.
 
-    Returns:
+    Yields:
         (the calling thread's CPU, the second thread's CPU).
 
     Raises:
-        ValueError: as :func:`solve_cpus`; nothing is changed then.
+        ValueError: as :func:`solve_cpus`, before anything is changed.
     """
     first, second = solve_cpus(first_cpu)
-    os.sched_setaffinity(0, {first})  # 0: the calling thread
-    _second_thread().submit(os.sched_setaffinity, 0, {second}).result()
-    torch.set_num_threads(1)
-    return first, second
+    pool = _second_thread()
+    mine, theirs = os.sched_getaffinity(0), pool.submit(os.sched_getaffinity, 0).result()
+    torch_threads = torch.get_num_threads()
+    try:
+        os.sched_setaffinity(0, {first})  # 0: the calling thread
+        pool.submit(os.sched_setaffinity, 0, {second}).result()
+        torch.set_num_threads(1)
+        yield first, second
+    finally:
+        os.sched_setaffinity(0, mine)
+        pool.submit(os.sched_setaffinity, 0, theirs).result()
+        torch.set_num_threads(torch_threads)
 
 
 class Pending:

@@ -1,10 +1,14 @@
 """Tests of gcn_match_ros.ros.parameters: the matcher node's parameter table and its ROS descriptors (no DDS)."""
 import dataclasses
+import os
+import time
 
 import pytest
+import torch
 from rcl_interfaces.msg import ParameterType
 
 from gcn_match_ros.ros.parameters import INPUT_QOS, MATCHER_PARAMETERS, WINDOW_PARAMETER_NAMES, ParameterSpec
+from gcn_match_ros.threads import _second_thread
 from gcn_match_ros.windowing import WindowConfig, window_parameters
 
 TYPE_OF_DEFAULT = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -92,6 +96,7 @@ def test_the_node_starts_from_each_parameter_file(name):
 
     wanted = yaml.safe_load((CONFIG / name).read_text())["/**/matcher_node"]["ros__parameters"]
     assert set(wanted) <= {spec.name for spec in MATCHER_PARAMETERS}, "unknown parameters in the file"
+    torch_threads, second_cpus = torch.get_num_threads(), _second_thread().submit(os.sched_getaffinity, 0).result()
     with RosSession("tester", domain_id=domain_id()) as session:
         node = MatcherNode(context=session.context, namespace=f"/t{uuid.uuid4().hex[:10]}",
                            cli_args=["--ros-args", "--params-file", str(CONFIG / name)])
@@ -99,6 +104,14 @@ def test_the_node_starts_from_each_parameter_file(name):
             got = {k: node.get_parameter(k).value for k in wanted}
             assert got == wanted
             assert node._method.startswith(wanted.get("solver", "gcn").split(":")[0])
+            if wanted.get("cpu_affinity", -1) >= 0:  # the worker has pinned the threads
+                deadline = time.monotonic() + 10
+                while node._solve_cpus == "any" and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                assert node._solve_cpus != "any"
         finally:
             assert node.stop()
             node.destroy_node()
+    # a stopped node leaves this process's threads as they were (config/pinned.yaml pins them)
+    assert torch.get_num_threads() == torch_threads
+    assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_cpus

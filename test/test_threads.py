@@ -12,7 +12,7 @@ import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
 from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, deferred, one_torch_thread,
-                                   pin_solve_threads, single_blas_thread, solve_cpus)
+                                   pinned_solve_threads, single_blas_thread, solve_cpus)
 from gcn_match_ros.timing import StageTimes, stage
 
 
@@ -251,27 +251,31 @@ def test_solve_cpus_are_the_given_one_and_the_next_allowed_wrapping_around():
 
 
 @pytest.mark.skipif(len(_ALLOWED) < 2, reason="needs Linux and two CPUs this process may use")
-def test_pin_solve_threads_puts_the_caller_and_the_second_thread_on_a_cpu_each():
-    """Called from a thread that solves (the node's worker), as the node does."""
+def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each_and_give_them_back():
+    """Entered by a thread that solves (the node's worker), as the node does."""
     torch_threads = torch.get_num_threads()
     second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
     seen = {}
 
     def worker():
-        seen["cpus"] = pin_solve_threads(_ALLOWED[1])
-        seen["mine"] = os.sched_getaffinity(0)
-        seen["torch"] = torch.get_num_threads()
-        with alongside(lambda: os.sched_getaffinity(0)) as pending:  # the work beside runs there
-            seen["beside"] = pending.result()
+        before = os.sched_getaffinity(0)
+        with pinned_solve_threads(_ALLOWED[1]) as cpus:
+            seen["cpus"] = cpus
+            seen["mine"] = os.sched_getaffinity(0)
+            seen["torch"] = torch.get_num_threads()
+            with alongside(lambda: os.sched_getaffinity(0)) as pending:  # the work beside runs there
+                seen["beside"] = pending.result()
+        seen["mine after"] = os.sched_getaffinity(0) == before
 
-    try:
-        t = threading.Thread(target=worker)
-        t.start()
-        t.join()
-        first, second = seen["cpus"]
-        assert (first, second) == solve_cpus(_ALLOWED[1])
-        assert seen["mine"] == {first} and seen["beside"] == {second} and seen["torch"] == 1
-        assert os.sched_getaffinity(0) == set(_ALLOWED)  # other threads stay where they were
-    finally:
-        _second_thread().submit(os.sched_setaffinity, 0, second_before).result()
-        torch.set_num_threads(torch_threads)
+    t = threading.Thread(target=worker)
+    t.start()
+    t.join()
+    first, second = seen["cpus"]
+    assert (first, second) == solve_cpus(_ALLOWED[1])
+    assert seen["mine"] == {first} and seen["beside"] == {second} and seen["torch"] == 1
+    assert seen["mine after"] and torch.get_num_threads() == torch_threads
+    assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
+    assert os.sched_getaffinity(0) == set(_ALLOWED)  # other threads stay where they were
+    with pytest.raises(ValueError, match="not one this process may use"):
+        with pinned_solve_threads(max(_ALLOWED) + 1):
+            pass

@@ -34,6 +34,7 @@ Run::
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import sys
@@ -60,7 +61,7 @@ from ..problem import Problem
 from ..rounding import compile_plain_merge
 from ..stamps import ns_to_seconds
 from ..stream import StreamState, solve_window
-from ..threads import pin_solve_threads, single_blas_thread, solve_cpus
+from ..threads import pinned_solve_threads, single_blas_thread, solve_cpus
 from ..windowing import Frame, FrameError, WindowAssembler, WindowConfig, trim_frame, window_problem
 from . import parameters
 from .conversions import MatchWindowError, result_to_match_window, validate_match_window
@@ -368,13 +369,22 @@ class _Matcher:
 
     # -- inference worker -----------------------------------------------------------------
     def _worker_loop(self) -> None:
-        if self._cpu_affinity >= 0:
-            try:
-                self._solve_cpus = ", ".join(str(c) for c in pin_solve_threads(self._cpu_affinity))
-                self.get_logger().info(f"solving on CPUs {self._solve_cpus}")
-            except (ValueError, OSError) as exc:  # the CPUs were taken away since configure
-                self.get_logger().error(f"cpu_affinity={self._cpu_affinity}: {exc}; the OS places the solve's "
-                                        "threads")
+        # pinned (cpu_affinity) while the worker runs: the threads' CPUs and torch's thread count
+        # are given back when it stops, for whatever else runs in this process
+        with contextlib.ExitStack() as placement:
+            if self._cpu_affinity >= 0:
+                try:
+                    cpus = placement.enter_context(pinned_solve_threads(self._cpu_affinity))
+                    self._solve_cpus = ", ".join(str(c) for c in cpus)
+                    self.get_logger().info(f"solving on CPUs {self._solve_cpus}")
+                except (ValueError, OSError) as exc:  # the CPUs were taken away since configure
+                    self.get_logger().error(f"cpu_affinity={self._cpu_affinity}: {exc}; the OS places the "
+                                            "solve's threads")
+            self._serve()
+        self._solve_cpus = "any"
+
+    def _serve(self) -> None:
+        """Solve the pending window, one after another, until stopped."""
         while True:
             with self._cv:
                 while self._pending is None and not self._stopping:
