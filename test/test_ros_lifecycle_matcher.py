@@ -2,10 +2,13 @@
 services as a lifecycle manager would: configure loads the model (a bad parameter leaves it
 unconfigured), activate matches, deactivate stops matching and keeps the model, cleanup
 releases it, and it can be configured and activated again."""
+import os
 import time
 import uuid
 
 import numpy as np
+import pytest
+import torch
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
@@ -15,6 +18,7 @@ from gcn_match_msgs.msg import Keypoints, MatchWindow
 from gcn_match_ros.ros.conversions import frame_to_keypoints
 from gcn_match_ros.ros.matcher_node import LifecycleMatcherNode
 from gcn_match_ros.ros.testing import RosSession
+from gcn_match_ros.threads import _second_thread
 
 CAMS = ["cam0", "cam1", "cam2"]
 
@@ -96,3 +100,28 @@ def test_a_bad_parameter_leaves_it_unconfigured():
         assert not manager.transition(Transition.TRANSITION_CONFIGURE)
         assert manager.state() == State.PRIMARY_STATE_UNCONFIGURED and not node.solver_loaded
         assert manager.transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
+
+
+@pytest.mark.skipif(len(getattr(os, "sched_getaffinity", lambda _: ())(0)) < 2,
+                    reason="needs Linux and two CPUs this process may use")
+def test_pinned_solve_threads_follow_activation():
+    """cpu_affinity: the worker pins the solve's threads while active and gives them back when
+    deactivated (so an inactive node leaves its process's threads as they were), then again."""
+    allowed = sorted(os.sched_getaffinity(0))
+    torch_threads = torch.get_num_threads()
+    second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
+        node = session.add_node(LifecycleMatcherNode(context=session.context, namespace=ns, parameter_overrides=[
+            Parameter("solver", value="nn"), Parameter("cpu_affinity", value=allowed[0])]))
+        manager = _Manager(session, node.get_fully_qualified_name())
+        assert manager.transition(Transition.TRANSITION_CONFIGURE)
+        pinned = f"{allowed[0]}, {allowed[1]}"
+        for _ in range(2):
+            assert manager.transition(Transition.TRANSITION_ACTIVATE)
+            assert session.spin_until(lambda: node._solve_cpus == pinned)
+            assert _second_thread().submit(os.sched_getaffinity, 0).result() == {allowed[1]}
+            assert manager.transition(Transition.TRANSITION_DEACTIVATE)
+            assert node._solve_cpus == "any" and torch.get_num_threads() == torch_threads
+            assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
+        assert manager.transition(Transition.TRANSITION_CLEANUP)
