@@ -48,8 +48,8 @@ from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "alongside", "deferred", "Pending", "SharedTasks",
-           "one_torch_thread"]
+__all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "alongside", "deferred", "Pending",
+           "SharedTasks", "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None

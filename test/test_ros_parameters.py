@@ -96,7 +96,8 @@ def test_the_node_starts_from_each_parameter_file(name):
 
     wanted = yaml.safe_load((CONFIG / name).read_text())["/**/matcher_node"]["ros__parameters"]
     assert set(wanted) <= {spec.name for spec in MATCHER_PARAMETERS}, "unknown parameters in the file"
-    torch_threads, second_cpus = torch.get_num_threads(), _second_thread().submit(os.sched_getaffinity, 0).result()
+    torch_threads = torch.get_num_threads()
+    second_cpus = _second_thread().submit(os.sched_getaffinity, 0).result()
     with RosSession("tester", domain_id=domain_id()) as session:
         node = MatcherNode(context=session.context, namespace=f"/t{uuid.uuid4().hex[:10]}",
                            cli_args=["--ros-args", "--params-file", str(CONFIG / name)])
