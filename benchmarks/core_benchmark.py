@@ -29,7 +29,7 @@ from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.data.permutation_noise import PAPER_SYNTHETIC_ROWS, permutation_noise_problem
 from gcn_match_ros.evaluation import evaluate, format_table
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 from gcn_match_ros.metrics import mean_scores, score_result
 
 REPO = Path(__file__).resolve().parents[1]
@@ -207,9 +207,7 @@ def main(argv=None) -> None:
     out("\n## Goals\n")
     goals_section(rome, scaling, out)
     out(f"\nTotal benchmark time: {time.time() - started:.0f} s")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print(f"\nwrote {args.out}")
+    write_results(args.out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

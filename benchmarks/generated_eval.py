@@ -27,7 +27,7 @@ import torch
 
 from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 from gcn_match_ros.metrics import paired_bootstrap, score_result
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,8 +82,7 @@ def main(argv=None) -> int:
                 lines.append(f"- {preset}, {m}: {mean:+.4f} [{lo:+.4f}, {hi:+.4f}], "
                              f"{len(per_window[preset, m])} windows")
     lines += ["", f"Total wall time {time.perf_counter() - started:.0f} s."]
-    args.out.write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.out}")
+    write_results(args.out, "\n".join(lines) + "\n")
     return 0
 
 

@@ -34,7 +34,7 @@ from gcn_match_ros.data.convert import make_problem
 from gcn_match_ros.data.labels import window_depth_range
 from gcn_match_ros.data.scenes import load_scene
 from gcn_match_ros.experiments import (DATA_ROOT, GEOMETRIC_DEV_SCENES, GEOMETRIC_HELD_OUT_SCENES, results_header,
-                                       spaced_windows)
+                                       spaced_windows, write_results)
 from gcn_match_ros.geometric_metrics import chance_pass_rate, pairs_consistent, score_geometric, view_overlap
 from gcn_match_ros.plots import plot_reliability
 
@@ -248,8 +248,8 @@ def main(argv=None):
             plot_reliability(BINS, shares, fig, counts=counts, title=f"published scores vs geometric consistency: {title}")
             lines.append(f"Figure: {fig.name}\n")
     lines.append(f"Total wall time {time.time() - t0:.0f} s.")
-    out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    write_results(out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

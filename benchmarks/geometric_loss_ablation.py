@@ -33,7 +33,7 @@ import torch
 
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate
-from gcn_match_ros.experiments import results_header, role, split, windows
+from gcn_match_ros.experiments import results_header, write_results, role, split, windows
 from gcn_match_ros.plots import plot_history, plot_pr_curves
 from gcn_match_ros.problem import load_problem
 
@@ -149,8 +149,7 @@ def main(argv=None):
     lines.append(f"| nn (reference; synthetic: nn:graph=mutual) | | | | {nn['F1']:.3f} | {nn['AP']:.3f} "
                  f"| {nn_synth['nn:graph=mutual']['mean']['F1']:.3f} | | |")
     lines.append(f"\nFigures: `{curves.name}` (curves), `{pr.name}` (held-out precision-recall).")
-    out.write_text("\n".join(lines) + "\n")
-    print("wrote", out)
+    write_results(out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

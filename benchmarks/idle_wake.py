@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
-from gcn_match_ros.experiments import python_speed, results_header, run_note
+from gcn_match_ros.experiments import python_speed, results_header, write_results, run_note
 from gcn_match_ros.stream import StreamState, solve_window
 from gcn_match_ros.threads import pinned_solve_threads, solve_cpus
 
@@ -259,8 +259,7 @@ def main(argv=None) -> int:
             f"{args.pauses} pauses, and back to back; wall time of the pair against one burst alone (1.0: a core "
             "each; 2.0: one core shared).\n\n" + "\n".join(burst_table(bursts)) + "\n")
     print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
+    write_results(args.out, text)
     return 0
 
 

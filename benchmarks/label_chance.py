@@ -17,7 +17,7 @@ import numpy as np
 from gcn_match_ros.data.labels import label_poses
 from gcn_match_ros.data.scenes import read_gray
 from gcn_match_ros.detect import extract_features
-from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header
+from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header, write_results
 from gcn_match_ros.metrics import count_pairs
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,8 +59,8 @@ def main(argv=None):
         lines.append(f"- {det}: {chance} chance of {real} labelled pairs between views 0-1 "
                      f"({100 * chance / max(real, 1):.1f}%)")
     lines.append(f"\nWall time {time.time() - t0:.0f} s.")
-    Path(args.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    write_results(args.out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ import torch
 
 from gcn_match_ros import solvers
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_sequence
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 from gcn_match_ros.landmark_map import held_out_sighting_errors, reprojection_summary
 from gcn_match_ros.landmark_metrics import landmark_scores, true_points
 from gcn_match_ros.landmarks import LandmarkTracker, PerCameraNNLinker
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
         f"better; {', '.join(LOWER_IS_BETTER)}: lower):\n\n" + "\n".join(f"- {x}" for x in shortfalls)
         + "\n")
     print(text)
-    args.out.write_text(text)
+    write_results(args.out, text)
     return 0
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_windows
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 from gcn_match_ros.landmarks import LandmarkTracker
 
 REPO = Path(__file__).resolve().parents[1]
@@ -70,7 +70,7 @@ def main(argv=None) -> int:
             f"{length:.0f} m, true tracks; wall time {time.perf_counter() - start:.0f} s.\n\n"
             + "\n".join(lines) + "\n\n" + verdict + "\n")
     print(text)
-    args.out.write_text(text)
+    write_results(args.out, text)
     return 0
 
 

@@ -38,7 +38,7 @@ from gcn_match_ros.edges.rotation_cycles import (MIN_ROTATION_PAIRS, ROTATION_CY
                                                  relative_rotation, rotation_angle_deg)
 from gcn_match_ros.edges.verify import fit_pair
 from gcn_match_ros.experiments import (DATA_ROOT, GEOMETRIC_DEV_SCENES, GEOMETRIC_HELD_OUT_SCENES, results_header,
-                                       spaced_windows)
+                                       spaced_windows, write_results)
 from gcn_match_ros.geometric_metrics import pair_epipolar_px
 from gcn_match_ros.geometry import unproject
 from gcn_match_ros.metrics import score_result
@@ -182,9 +182,8 @@ def main(argv=None):
         lines.append("")
     lines += generated_lines()
     lines.append(f"Total wall time {time.time() - t0:.0f} s.")
-    out = Path(args.out)
-    out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    write_results(args.out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gcn_match_ros.experiments import describe_machine, python_speed, results_header, run_note
+from gcn_match_ros.experiments import describe_machine, python_speed, results_header, write_results, run_note
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -365,11 +365,7 @@ what else runs: mind the load average above (2 cores shared with other jobs infl
     print(table)
     if verdict:
         print(verdict)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    if args.append and args.out.is_file():
-        doc = args.out.read_text().rstrip("\n") + "\n\n---\n\n" + doc
-    args.out.write_text(doc)
-    print(f"written to {args.out}")
+    write_results(args.out, doc, append=args.append)
     return 0
 
 

@@ -31,7 +31,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import node_latency  # noqa: E402  (the node benchmark this one repeats)
 
-from gcn_match_ros.experiments import describe_machine, python_speed, results_header, speed_note  # noqa: E402
+from gcn_match_ros.experiments import (describe_machine, python_speed, results_header, speed_note,  # noqa: E402
+                                       write_results)
 
 REPO = Path(__file__).resolve().parents[1]
 GOAL_RATIO = 1.20
@@ -141,9 +142,7 @@ indirect cost. Timings depend on what else runs: mind the load average above.
     print()
     print(table)
     print(verdict)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(doc)
-    print(f"written to {args.out}")
+    write_results(args.out, doc)
     return 0
 
 

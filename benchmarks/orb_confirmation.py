@@ -31,7 +31,7 @@ from tqdm import tqdm
 from gcn_match_ros.data.convert import convert
 from gcn_match_ros.data.homography_sequence import make_sequence
 from gcn_match_ros.evaluation import evaluate, format_table
-from gcn_match_ros.experiments import lead_lines, results_header
+from gcn_match_ros.experiments import lead_lines, results_header, write_results
 from gcn_match_ros.metrics import count_pairs
 from gcn_match_ros.problem import load_problem
 
@@ -132,9 +132,7 @@ def main(argv=None):
                        + " | ".join(f"{c:.3f}" for c in cells) + " |")
         print("\n".join(out[-len(subsets) - 8:]), flush=True)
     out.append(f"\nTotal wall time {time.time() - t0:.0f} s.")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(out) + "\n")
-    print("wrote", args.out)
+    write_results(args.out, "\n".join(out) + "\n")
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
-from gcn_match_ros.experiments import python_speed, results_header, run_note
+from gcn_match_ros.experiments import python_speed, results_header, write_results, run_note
 from gcn_match_ros.metrics import paired_bootstrap
 from gcn_match_ros.stream import StreamState, solve_window
 
@@ -105,8 +105,7 @@ def main(argv=None) -> int:
             "solve_window's wall time (landmarks included); stages: medians of gcn_match_ros.timing.\n\n"
             + "\n".join(lines) + f"\n\n{verdict}\n")
     print(text)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
+    write_results(args.out, text)
     return 0
 
 

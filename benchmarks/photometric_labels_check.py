@@ -24,7 +24,7 @@ import numpy as np
 from gcn_match_ros.data.labels import label_photometric, label_poses, window_depth_range
 from gcn_match_ros.data.scenes import read_gray
 from gcn_match_ros.detect import extract_features
-from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header
+from gcn_match_ros.experiments import DATA_ROOT, WINDOWS, first_pair_tracks, pose_windows, results_header, write_results
 from gcn_match_ros.metrics import count_pairs
 
 REPO = Path(__file__).resolve().parents[1]
@@ -90,8 +90,8 @@ def main(argv=None):
         lines.append(f"- orb geometric-true pairs the photometric labels call {'true' if k == 'agree' else 'false'}: "
                      f"median Hamming distance {np.median(v) if v else float('nan'):.0f} of 256 ({len(v)} pairs)")
     lines.append(f"\nWall time {time.time() - t0:.0f} s.")
-    Path(args.out).write_text("\n".join(lines) + "\n")
     print("\n".join(lines[-6:]))
+    write_results(args.out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

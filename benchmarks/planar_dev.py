@@ -36,7 +36,7 @@ from gcn_match_ros.data.scenes import DATA_ROOT
 from gcn_match_ros.edges.candidates import EdgeConfig, candidate_edges
 from gcn_match_ros.edges.verify import MIN_SEEDS
 from gcn_match_ros.evaluation import evaluate, format_table
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 from gcn_match_ros.problem import Problem, load_problem
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,9 +122,7 @@ def main(argv=None) -> int:
             lines.append(f"| {e['describe']} | " + " | ".join(cells) + " |")
         print("\n".join(lines[-8:]), flush=True)
     lines.append(f"\nTotal wall time {time.time() - t0:.0f} s.")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines) + "\n")
-    print("wrote", args.out)
+    write_results(args.out, "\n".join(lines) + "\n")
     return 0
 
 

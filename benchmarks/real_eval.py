@@ -22,7 +22,7 @@ import torch
 from gcn_match_ros import solvers
 from gcn_match_ros.data.convert import POSE_LABELS, convert
 from gcn_match_ros.evaluation import evaluate, format_table
-from gcn_match_ros.experiments import DATA_ROOT, lead_lines, results_header, role, windows
+from gcn_match_ros.experiments import DATA_ROOT, lead_lines, results_header, write_results, role, windows
 from gcn_match_ros.problem import load_problem
 
 REPO = Path(__file__).resolve().parents[1]
@@ -121,9 +121,7 @@ def main(argv=None):
                "counts under each held-out table; ~3% of them chance confirmations, results/label_chance.md): "
                "their scores are noisy. gcn runs the shipped model of each descriptor type (models/default.pt "
                "for SIFT, models/orb.pt for ORB).")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text("\n".join(out) + "\n")
-    print("wrote", args.out)
+    write_results(args.out, "\n".join(out) + "\n")
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ import torch
 
 from gcn_match_ros import plots, solvers
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
-from gcn_match_ros.experiments import python_speed, results_header, speed_note
+from gcn_match_ros.experiments import python_speed, results_header, write_results, speed_note
 from gcn_match_ros.stream import StreamState, solve_window
 
 REPO = Path(__file__).resolve().parents[1]
@@ -186,9 +186,7 @@ def main(argv=None) -> int:
               "(issue 13's goal: with / without <= 1.20). "
               f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
             + table + "\n")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out, "a" if args.append else "w") as f:
-        f.write(("\n---\n\n" if args.append else "") + text)
+    write_results(args.out, text, append=args.append)
     return 0
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from gcn_match_ros.data.permutation_noise import PAPER_SYNTHETIC_ROWS, graph_outlier_rate, permutation_noise_problem
 from gcn_match_ros.data.synthetic import easy, mutual_nn_prf, partial, random_scene_problem, rome16k
-from gcn_match_ros.experiments import results_header
+from gcn_match_ros.experiments import results_header, write_results
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,10 +74,7 @@ def main(argv=None):
         print(f"permutation {row:16s} wrong-match rate {np.mean(rates):.3f}", flush=True)
         lines.append(f"| {row} | {np.mean(rates):.3f} |")
     lines.append(f"\nWall time {time.time() - t_start:.0f} s.")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
-    print("wrote", out)
+    write_results(args.out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

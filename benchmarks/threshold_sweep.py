@@ -30,7 +30,7 @@ from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate
 from gcn_match_ros.experiments import (DATA_ROOT, SYNTHETIC_DESCRIPTORS, geometric_validation_problems, problem_files,
-                                       results_header, split)
+                                       results_header, split, write_results)
 from gcn_match_ros.learn.sources import SYNTH_VAL_SEED
 from gcn_match_ros.problem import load_problem
 from gcn_match_ros.rounding import tracks_to_pairs
@@ -102,8 +102,8 @@ def main(argv=None):
                  f"validation windows): {min(floor_met) if floor_met else 'none reaches it'}")
     lines.append(f"\nWall time {time.time() - t0:.0f} s.")
     out = Path(args.out or REPO / "benchmarks" / "results" / f"threshold_sweep_{args.detector}.md")
-    out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    write_results(out, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -11,9 +11,9 @@
   windows :data:`WINDOWS`, the loop over them :func:`pose_windows` and the count
   :func:`first_pair_tracks`.
 - Reporting: the header every results file starts with (:func:`results_header`: title, the
-  command that ran, the machine), the machine's speed when a timing ran (:func:`speed_note`;
-  with when and for how long: :func:`run_note`) and the F1 lead of gcn over the best other
-  method with a bootstrap interval (:func:`lead_lines`).
+  command that ran, the machine), writing the file (:func:`write_results`), the machine's speed
+  when a timing ran (:func:`speed_note`; with when and for how long: :func:`run_note`) and the F1
+  lead of gcn over the best other method with a bootstrap interval (:func:`lead_lines`).
 
 Problem names follow :func:`gcn_match_ros.data.convert.problem_name`:
 ``<dataset>_<scene>_<detector>_<views>``, e.g. ``strecha_fountain-P11_sift_4-5-6``.
@@ -40,7 +40,8 @@ from .problem import Problem
 __all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "GEOMETRIC_DEV_SCENES",
            "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
-           "describe_machine", "command_line", "results_header", "python_speed", "speed_note", "run_note"]
+           "describe_machine", "command_line", "results_header", "write_results", "python_speed", "speed_note",
+           "run_note"]
 
 
 #: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
@@ -378,3 +379,22 @@ def results_header(title: str, script: Union[str, Path], argv: Optional[Sequence
     """
     return [f"# {title}\n", f"Command: `{command_line(script, argv, launcher, env)}`  ",
             f"Machine: {describe_machine(torch_threads, machine_extra)}  "]
+
+
+def write_results(out: Union[str, Path], text: str, append: bool = False) -> Path:
+    """Write a results file's ``text`` to ``out``, making its folder, and say where.
+
+    Args:
+        append: keep what ``out`` holds and put ``text`` after it, below a rule (``---``), as the
+            earlier runs of a results file stand below the latest.
+
+    Returns:
+        ``out`` as a path.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if append and out.is_file():
+        text = out.read_text().rstrip("\n") + "\n\n---\n\n" + text
+    out.write_text(text)
+    print(f"written to {out}")
+    return out

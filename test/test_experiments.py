@@ -12,7 +12,7 @@ from gcn_match_ros.data import synthetic
 from gcn_match_ros.evaluation import evaluate
 from gcn_match_ros.experiments import (command_line, describe_machine, first_pair_tracks, images_of, lead_lines,
                                        pose_windows, problem_files, python_speed, results_header, role, run_note,
-                                       speed_note, split, windows)
+                                       speed_note, split, windows, write_results)
 
 from conftest import rigid_motion_2d, write_oxford_like_scene
 
@@ -162,3 +162,14 @@ def test_run_note_says_when_how_long_and_the_speed():
     note = run_note(61.4, 0.5)
     assert re.fullmatch(r"Run \d{4}-\d\d-\d\d \d\d:\d\d, 61 s\. A fixed pure-Python loop \(experiments\.python_speed\) "
                         r"took 0\.50 s before the run and \d+\.\d\d s after it \(lower is faster\)\.", note), note
+
+
+def test_write_results_makes_the_folder_and_appends_below_a_rule(tmp_path, capsys):
+    out = tmp_path / "new" / "table.md"
+    assert write_results(out, "# first\n\n| a |\n", append=True) == out  # nothing to append to: no rule
+    assert out.read_text() == "# first\n\n| a |\n"
+    write_results(str(out), "# second\n", append=True)
+    assert out.read_text() == "# first\n\n| a |\n\n---\n\n# second\n"
+    write_results(out, "# third\n")
+    assert out.read_text() == "# third\n"
+    assert capsys.readouterr().out.count(f"written to {out}") == 3
