@@ -14,19 +14,19 @@ import dataclasses
 import functools
 import os
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
 import torch
 
 from ..descriptors import NORMALIZATIONS, describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
-from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig, EdgeSet
+from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig, ViewPair
 from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
-from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, PLANAR_RATIO, check_planar_ratio
+from ..edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, PLANAR_RATIO, PairModel, check_planar_ratio
 from ..graph import GRAPH_PRESETS, CorrespondenceGraph, GraphConfig, build_graph
 from ..learn.checkpoint import load_checkpoint
 from ..learn.model import embed_problem
@@ -333,8 +333,8 @@ class GCNSolver(Solver):
         # get no features and are not scored. Every later step reads only pairs it may keep, so
         # the published pairs and tracks are the same. (Rotation cycles may still drop a model,
         # which turns its view pair's pairs into scored ones: there every candidate is kept.)
-        verifying = edges is not None and self.config.verify and edges.geometry and not self.config.rotation_cycles
-        keep = _MayKeep(problem, self.config.unverified_threshold, edges) if verifying else None
+        verify_first = edges is not None and self._verifies(edges) and not self.config.rotation_cycles
+        keep = _MayKeep(functools.partial(self._geometry, problem, edges=edges)) if verify_first else None
         job = CandidateJob(problem, edges, similarity, rig, keep) if edges is not None else None
         with alongside(_timed_candidates, job, parallel=self.config.parallel and job is not None) as candidates:
             if beside is not None and self.config.parallel:
@@ -364,7 +364,7 @@ class GCNSolver(Solver):
                     es = candidates.result()
                 if job.candidates == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
-                geometry = keep.geometry if keep is not None else self._geometry(problem, es, edges)
+                geometry = keep.geometry if keep is not None else self._geometry(problem, es.models, edges)
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es,
                                                                             parallel=self.config.parallel))
@@ -380,12 +380,17 @@ class GCNSolver(Solver):
             return self._verified(soft, geometry, similarity, edges.normalization)
         return soft, None
 
-    def _geometry(self, problem: Problem, es: EdgeSet, edges: EdgeConfig) -> Optional[WindowGeometry]:
-        """The window's trusted models that verification checks the pairs against; None when
-        the solver does not verify."""
-        if not (self.config.verify and edges.geometry):
+    def _verifies(self, edges: EdgeConfig) -> bool:
+        """Whether the pairs are verified against the view pairs' trusted models."""
+        return bool(self.config.verify and edges.geometry)
+
+    def _geometry(self, problem: Problem, models: Dict[ViewPair, Optional[PairModel]],
+                  edges: EdgeConfig) -> Optional[WindowGeometry]:
+        """The window's trusted ``models`` (:attr:`gcn_match_ros.edges.candidates.EdgeSet.models`)
+        that verification checks the pairs against; None when the solver does not verify."""
+        if not self._verifies(edges):
             return None
-        return WindowGeometry(problem, es.models, self.config.unverified_threshold, edges)
+        return WindowGeometry(problem, models, self.config.unverified_threshold, edges)
 
     def _verified(self, soft: SoftMatches, geometry: WindowGeometry, similarity: DescriptorSimilarity,
                   normalization: str):
@@ -403,15 +408,15 @@ class GCNSolver(Solver):
 
 class _MayKeep:
     """The candidate edges' ``keep`` rule when the solve verifies: the pairs the window's trusted
-    models may keep (:meth:`WindowGeometry.may_keep`); the geometry it built stays for the
-    verification of the scored pairs."""
+    models may keep (:meth:`WindowGeometry.may_keep`); the geometry it built from the models
+    (``geometry_of(models)``) stays for the verification of the scored pairs."""
 
-    def __init__(self, problem: Problem, unverified_threshold: float, edges: EdgeConfig) -> None:
-        self._problem, self._threshold, self._edges = problem, unverified_threshold, edges
+    def __init__(self, geometry_of: Callable[[Dict[ViewPair, Optional[PairModel]]], WindowGeometry]) -> None:
+        self._geometry_of = geometry_of
         self.geometry: Optional[WindowGeometry] = None
 
     def __call__(self, rows: np.ndarray, cols: np.ndarray, models) -> np.ndarray:
-        self.geometry = WindowGeometry(self._problem, models, self._threshold, self._edges)
+        self.geometry = self._geometry_of(models)
         return self.geometry.may_keep(rows, cols)
 
 
