@@ -253,20 +253,21 @@ class CandidateJob:
             with stage("rounding"):
                 at = np.flatnonzero(self._keep(rows, colsi, models))
 
-        def cat(field: str) -> np.ndarray:
-            column = np.concatenate([getattr(p, field) for p in parts])
+        def kept(column: np.ndarray) -> np.ndarray:
             return column if at is None else column.take(at)
+
+        def cat(field: str) -> np.ndarray:
+            return kept(np.concatenate([getattr(p, field) for p in parts]))
 
         s, ra, rb = cat("cosine"), cat("ratio_a"), cat("ratio_b")
         rka, rkb = cat("rank_a").astype(np.float64), cat("rank_b").astype(np.float64)
-        mutual, conf = cat("mutual"), cat("confident")
+        mutual, conf = cat("mutual"), kept(conf_all)
         rh, rf = cat("res_h"), cat("res_f")
-        hasm = np.concatenate([np.full(len(p.ea), p.model_kind) for p in parts])
-        hasm = hasm if at is None else hasm.take(at)
+        hasm = kept(np.concatenate([np.full(len(p.ea), p.model_kind) for p in parts]))
         has, planar = (hasm > 0).astype(np.float64), (hasm == 2).astype(np.float64)
         guided = cat("guided")
         view = problem.view_index
-        scored_rows, scored_cols = (rows, colsi) if at is None else (rows.take(at), colsi.take(at))
+        scored_rows, scored_cols = kept(rows), kept(colsi)
         tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool), scored_rows, scored_cols)
         tri_conf = _triangle_support(n, V, view, rows, colsi, conf_all, scored_rows, scored_cols)
         rmin = np.minimum(rh, rf)
