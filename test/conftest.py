@@ -44,6 +44,12 @@ REFERENCE_PROBLEMS = SHARED / "reference" / "oxford-dev" / "problems"
 SAMPLE_BAGS = REPO / "bags"
 
 
+#: the CPUs this process may use, in order (empty where threads cannot be placed on CPUs)
+PROCESS_CPUS = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+#: for tests that pin the solve's two threads (threads.pinned_solve_threads, cpu_affinity)
+needs_two_cpus = pytest.mark.skipif(len(PROCESS_CPUS) < 2, reason="needs Linux and two CPUs this process may use")
+
+
 def permuted_views_problem(n_views: int = 3, n_points: int = 12, dim: int = 16, noise: float = 0.0,
                            seed: int = 0) -> Problem:
     """V views of the same p points in random order; descriptors = point descriptor + noise."""

@@ -7,13 +7,12 @@ import time
 import uuid
 
 import numpy as np
-import pytest
 import torch
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
 
-from conftest import PermutedScene, domain_id
+from conftest import PROCESS_CPUS, PermutedScene, domain_id, needs_two_cpus
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 from gcn_match_ros.ros.conversions import frame_to_keypoints
 from gcn_match_ros.ros.matcher_node import LifecycleMatcherNode
@@ -102,12 +101,11 @@ def test_a_bad_parameter_leaves_it_unconfigured():
         assert manager.transition(Transition.TRANSITION_UNCONFIGURED_SHUTDOWN)
 
 
-@pytest.mark.skipif(len(getattr(os, "sched_getaffinity", lambda _: ())(0)) < 2,
-                    reason="needs Linux and two CPUs this process may use")
+@needs_two_cpus
 def test_pinned_solve_threads_follow_activation():
     """cpu_affinity: the worker pins the solve's threads while active and gives them back when
     deactivated (so an inactive node leaves its process's threads as they were), then again."""
-    allowed = sorted(os.sched_getaffinity(0))
+    allowed = PROCESS_CPUS
     torch_threads = torch.get_num_threads()
     second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
     ns = f"/t{uuid.uuid4().hex[:10]}"

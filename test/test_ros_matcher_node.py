@@ -38,7 +38,7 @@ from gcn_match_ros.solvers import SoftMatches, Solver, available_solvers, regist
 from gcn_match_ros.stamps import seconds_to_ns, stamp_to_ns
 from gcn_match_ros.windowing import Frame, WindowConfig
 
-from conftest import PermutedScene, domain_id
+from conftest import PROCESS_CPUS, PermutedScene, domain_id, needs_two_cpus
 
 REPO = Path(__file__).resolve().parents[1]
 CAMS = ["cam0", "cam1", "cam2"]
@@ -546,12 +546,11 @@ def test_matcher_process_sigterm_clean_exit():
     assert "Traceback" not in out, out
 
 
-@pytest.mark.skipif(len(getattr(os, "sched_getaffinity", lambda _: ())(0)) < 2,
-                    reason="needs Linux and two CPUs this process may use")
+@needs_two_cpus
 def test_matcher_process_solves_on_the_cpus_cpu_affinity_names():
     """cpu_affinity: the worker and the solver's second thread each on a CPU of their own, named
     in /diagnostics (a process of its own: pinning would outlive the test in this one)."""
-    allowed = sorted(os.sched_getaffinity(0))
+    allowed = PROCESS_CPUS
     ns = f"/t{uuid.uuid4().hex[:10]}"
     env = _node_env()
     proc = subprocess.Popen(_matcher_cmd("solver:=nn", "diagnostics_period:=0.1", f"cpu_affinity:={allowed[-1]}",

@@ -15,6 +15,8 @@ from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, defer
                                    pinned_solve_threads, single_blas_thread, solve_cpus)
 from gcn_match_ros.timing import StageTimes, stage
 
+from conftest import PROCESS_CPUS, needs_two_cpus
+
 
 def test_single_blas_thread_limits_numpys_blas_and_leaves_torch_alone():
     torch_threads = torch.get_num_threads()
@@ -239,18 +241,15 @@ def test_shared_tasks_hand_the_first_error_to_the_caller_and_take_nothing_after_
         SharedTasks([int, int], order=[0, 0])
 
 
-_ALLOWED = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
-
-
-@pytest.mark.skipif(len(_ALLOWED) < 2, reason="needs Linux and two CPUs this process may use")
+@needs_two_cpus
 def test_solve_cpus_are_the_given_one_and_the_next_allowed_wrapping_around():
-    assert solve_cpus(_ALLOWED[0]) == (_ALLOWED[0], _ALLOWED[1])
-    assert solve_cpus(_ALLOWED[-1]) == (_ALLOWED[-1], _ALLOWED[0])
+    assert solve_cpus(PROCESS_CPUS[0]) == (PROCESS_CPUS[0], PROCESS_CPUS[1])
+    assert solve_cpus(PROCESS_CPUS[-1]) == (PROCESS_CPUS[-1], PROCESS_CPUS[0])
     with pytest.raises(ValueError, match="not one this process may use"):
-        solve_cpus(max(_ALLOWED) + 1)
+        solve_cpus(max(PROCESS_CPUS) + 1)
 
 
-@pytest.mark.skipif(len(_ALLOWED) < 2, reason="needs Linux and two CPUs this process may use")
+@needs_two_cpus
 def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each_and_give_them_back():
     """Entered by a thread that solves (the node's worker), as the node does."""
     torch_threads = torch.get_num_threads()
@@ -259,7 +258,7 @@ def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each
 
     def worker():
         before = os.sched_getaffinity(0)
-        with pinned_solve_threads(_ALLOWED[1]) as cpus:
+        with pinned_solve_threads(PROCESS_CPUS[1]) as cpus:
             seen["cpus"] = cpus
             seen["mine"] = os.sched_getaffinity(0)
             seen["torch"] = torch.get_num_threads()
@@ -271,11 +270,11 @@ def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each
     t.start()
     t.join()
     first, second = seen["cpus"]
-    assert (first, second) == solve_cpus(_ALLOWED[1])
+    assert (first, second) == solve_cpus(PROCESS_CPUS[1])
     assert seen["mine"] == {first} and seen["beside"] == {second} and seen["torch"] == 1
     assert seen["mine after"] and torch.get_num_threads() == torch_threads
     assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
-    assert os.sched_getaffinity(0) == set(_ALLOWED)  # other threads stay where they were
+    assert os.sched_getaffinity(0) == set(PROCESS_CPUS)  # other threads stay where they were
     with pytest.raises(ValueError, match="not one this process may use"):
-        with pinned_solve_threads(max(_ALLOWED) + 1):
+        with pinned_solve_threads(max(PROCESS_CPUS) + 1):
             pass
