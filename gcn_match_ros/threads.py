@@ -28,17 +28,20 @@ the products are bitwise the same on one thread or two. While ``fn`` runs, the c
 keeps one core fewer (on 2 cores: one), and gets it back when ``fn``'s result is taken: the 4 x
 500 stream solve 45 -> 34 ms, solve outputs identical.
 
-:func:`pinned_solve_threads` keeps the solving thread and the second thread on two CPUs of their
-own. A kernel that packs threads onto few CPUs while the load is light (this project's 2-core
-VM: its guest kernel runs with ``sched_vcpu_pack``) puts the second thread on the first one's CPU
-when a window starts after a pause, and spreads them only under sustained load: at 10 Hz a 4 x 500
-window then runs its two threads on one core for much of its time (p95 52 ms against 43 pinned,
-benchmarks/results/idle_wake.md).
+:func:`kept_apart` keeps a window's two threads on two CPUs while it is solved, the CPU the
+solving thread is on and another, chosen anew for every window; :func:`pinned_solve_threads`
+keeps them on two given CPUs. A kernel that packs threads onto few CPUs while the load is light
+(this project's 2-core VM: its guest kernel runs with ``sched_vcpu_pack``) puts the second thread
+on the first one's CPU when a window starts after a pause, and spreads them only under sustained
+load: at 10 Hz a 4 x 500 window then runs its two threads on one core for much of its time (p95 52
+ms against 43 pinned, benchmarks/results/idle_wake.md). Between windows the threads are the OS's
+to place, so a CPU another process takes holds a window's thread for one window at most.
 """
 from __future__ import annotations
 
 import concurrent.futures
 import contextlib
+import ctypes
 import os
 import threading
 from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
@@ -48,14 +51,19 @@ from threadpoolctl import threadpool_limits
 
 from .timing import StageTimes, add_to_active
 
-__all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "alongside", "deferred", "Pending",
-           "SharedTasks", "one_torch_thread"]
+__all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "kept_apart", "alongside", "deferred",
+           "Pending", "SharedTasks", "one_torch_thread"]
 
 _SECOND_THREAD = "gcn_match_ros-alongside"
 _pool: Optional[concurrent.futures.ThreadPoolExecutor] = None
 _pool_lock = threading.Lock()
+_second_tid: Optional[int] = None  # the second thread's id for the OS (sched_setaffinity)
+_second_placed = False  # inside a pinned_solve_threads block
 _cores_taken = 0     # started functions whose results are not yet taken (_take_core)
 _threads_before = 1  # the caller's torch threads before the first of them
+_apart = threading.local()  # .active: this thread is inside kept_apart
+# glibc's sched_getcpu: the CPU the calling thread runs on (Python has no binding)
+_libc = ctypes.CDLL(None) if hasattr(os, "sched_setaffinity") else None
 
 
 def single_blas_thread() -> None:
@@ -95,21 +103,65 @@ def pinned_solve_threads(first_cpu: int) -> Iterator[Tuple[int, int]]:
         (the calling thread's CPU, the second thread's CPU).
 
     Raises:
-        ValueError: as :func:`solve_cpus`, before anything is changed.
+        ValueError: as :func:`solve_cpus`, or another thread's block has placed the second
+            thread; before anything is changed.
     """
+    global _second_placed
     first, second = solve_cpus(first_cpu)
-    pool = _second_thread()
-    mine, theirs = os.sched_getaffinity(0), pool.submit(os.sched_getaffinity, 0).result()
-    torch_threads = torch.get_num_threads()
+    _second_thread()
+    with _pool_lock:  # one placement of the second thread at a time, so each gives back what it found
+        if _second_placed:
+            raise ValueError("the second thread is placed for another thread's solves")
+        _second_placed = True
     try:
-        os.sched_setaffinity(0, {first})  # 0: the calling thread
-        pool.submit(os.sched_setaffinity, 0, {second}).result()
-        torch.set_num_threads(1)
-        yield first, second
+        mine, theirs = os.sched_getaffinity(0), os.sched_getaffinity(_second_tid)
+        torch_threads = torch.get_num_threads()
+        try:
+            os.sched_setaffinity(0, {first})  # 0: the calling thread
+            os.sched_setaffinity(_second_tid, {second})
+            torch.set_num_threads(1)
+            yield first, second
+        finally:
+            os.sched_setaffinity(0, mine)
+            os.sched_setaffinity(_second_tid, theirs)
+            torch.set_num_threads(torch_threads)
     finally:
-        os.sched_setaffinity(0, mine)
-        pool.submit(os.sched_setaffinity, 0, theirs).result()
-        torch.set_num_threads(torch_threads)
+        with _pool_lock:
+            _second_placed = False
+
+
+@contextlib.contextmanager
+def kept_apart(enabled: bool = True) -> Iterator[None]:
+    """Inside the block, the calling thread runs on the CPU it is on now and the process's second
+    thread on the next CPU the process may use (:func:`pinned_solve_threads` for that CPU), for a
+    solve that runs on both (see the module docstring for why); all as before once the block ends.
+
+    Nothing is placed when ``enabled`` is False, inside another ``kept_apart`` of this thread,
+    when the calling thread may run on one CPU only (:func:`pinned_solve_threads`, ``taskset``),
+    when the process has fewer than two CPUs, or where threads cannot be placed; nor when the
+    CPUs change under it meanwhile (the OS then places the threads, as it does outside the block).
+    """
+    with contextlib.ExitStack() as placement:
+        cpu = _this_cpu() if enabled and not getattr(_apart, "active", False) else None
+        if cpu is not None:
+            try:
+                placement.enter_context(pinned_solve_threads(cpu))
+            except (ValueError, OSError):
+                pass
+            else:
+                _apart.active = True
+                placement.callback(setattr, _apart, "active", False)
+        yield
+
+
+def _this_cpu() -> Optional[int]:
+    """The CPU the calling thread runs on, if it may run on others too and is not the second
+    thread itself; else None."""
+    if (_libc is None or threading.current_thread().name.startswith(_SECOND_THREAD)
+            or len(os.sched_getaffinity(0)) < 2):
+        return None
+    cpu = _libc.sched_getcpu()
+    return cpu if cpu >= 0 else None
 
 
 class Pending:
@@ -330,6 +382,9 @@ def _second_thread() -> concurrent.futures.ThreadPoolExecutor:
 
 def _one_torch_thread() -> None:
     """This thread's torch ops on one thread; the count taken first, so that torch's lazy
-    per-thread set-up cannot later replace it with the process's count."""
+    per-thread set-up cannot later replace it with the process's count. Its id kept for placing it
+    on a CPU from the caller's thread (no round trip through the queue)."""
+    global _second_tid
+    _second_tid = threading.get_native_id()
     torch.get_num_threads()
     torch.set_num_threads(1)

@@ -15,7 +15,7 @@ from rclpy.parameter import Parameter
 from conftest import PROCESS_CPUS, PermutedScene, domain_id, needs_two_cpus
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 from gcn_match_ros.ros.conversions import frame_to_keypoints
-from gcn_match_ros.ros.matcher_node import LifecycleMatcherNode
+from gcn_match_ros.ros.matcher_node import PER_WINDOW, LifecycleMatcherNode
 from gcn_match_ros.ros.testing import RosSession
 from gcn_match_ros.threads import _second_thread
 
@@ -120,6 +120,6 @@ def test_pinned_solve_threads_follow_activation():
             assert session.spin_until(lambda: node._solve_cpus == pinned)
             assert _second_thread().submit(os.sched_getaffinity, 0).result() == {allowed[1]}
             assert manager.transition(Transition.TRANSITION_DEACTIVATE)
-            assert node._solve_cpus == "any" and torch.get_num_threads() == torch_threads
+            assert node._solve_cpus == PER_WINDOW and torch.get_num_threads() == torch_threads
             assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
         assert manager.transition(Transition.TRANSITION_CLEANUP)

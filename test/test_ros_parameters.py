@@ -90,7 +90,7 @@ def test_matcher_yaml_is_every_parameter_at_its_default():
 
 @pytest.mark.parametrize("name", sorted(p.name for p in CONFIG.glob("*.yaml")))
 def test_the_node_starts_from_each_parameter_file(name):
-    from gcn_match_ros.ros.matcher_node import MatcherNode
+    from gcn_match_ros.ros.matcher_node import PER_WINDOW, MatcherNode
     from conftest import domain_id
     from gcn_match_ros.ros.testing import RosSession
 
@@ -107,9 +107,9 @@ def test_the_node_starts_from_each_parameter_file(name):
             assert node._method.startswith(wanted.get("solver", "gcn").split(":")[0])
             if wanted.get("cpu_affinity", -1) >= 0:  # the worker has pinned the threads
                 deadline = time.monotonic() + 10
-                while node._solve_cpus == "any" and time.monotonic() < deadline:
+                while node._solve_cpus == PER_WINDOW and time.monotonic() < deadline:
                     time.sleep(0.01)
-                assert node._solve_cpus != "any"
+                assert node._solve_cpus != PER_WINDOW
         finally:
             assert node.stop()
             node.destroy_node()

@@ -13,6 +13,8 @@ from gcn_match_ros.rounding import is_cycle_consistent
 from gcn_match_ros import solvers
 from gcn_match_ros.solvers.gcn import SHIPPED_MODELS
 
+from conftest import needs_two_cpus
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 # Oxford is never trained on (no poses): a held-out problem.
@@ -383,3 +385,48 @@ def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_id
     assert (ran_on is not threading.current_thread()) == on_second_thread
     np.testing.assert_array_equal(result.track, expected)
 
+
+
+@needs_two_cpus
+@pytest.mark.parametrize("spec", ["gcn", "gcn:parallel=false"])
+def test_a_solve_on_two_threads_keeps_them_on_two_cpus_to_the_end_of_its_landmark_search(monkeypatch, spec):
+    """``Solver.two_threads`` (gcn with ``parallel``): while a window is solved, the network's
+    thread stays on its CPU and the candidate edges and the stream's landmark search run on
+    another (threads.kept_apart); every thread's CPUs as before once the window is done. On one
+    thread nothing is placed."""
+    import os
+    import threading
+
+    import gcn_match_ros.solvers.gcn as gcn_module
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.candidates import CandidateJob
+    from gcn_match_ros.landmarks import LandmarkSearch
+    from gcn_match_ros.stream import StreamState, solve_window
+
+    seen = {"network": [], "second": []}
+    caller = threading.current_thread()
+
+    def recorded(fn, key=None):
+        def wrapper(*args, **kwargs):
+            on = key or ("network" if threading.current_thread() is caller else "second")
+            seen[on].append(frozenset(os.sched_getaffinity(0)))
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(gcn_module, "embed_problem", recorded(gcn_module.embed_problem, "network"))
+    monkeypatch.setattr(CandidateJob, "_pair", recorded(CandidateJob._pair))
+    monkeypatch.setattr(LandmarkSearch, "help", recorded(LandmarkSearch.help))
+    solver = solvers.create(spec)
+    assert solver.two_threads == solver.config.parallel
+    problem = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=80), np.random.default_rng(4))
+    problem = dataclasses.replace(problem, camera_ids=("a", "b", "c"))
+    before = frozenset(os.sched_getaffinity(0))
+    solver.solve(problem)
+    solve_window(solver, problem, StreamState(), 10**8)
+    assert os.sched_getaffinity(0) == before
+    (network,) = set(seen["network"])
+    if solver.two_threads:
+        assert len(network) == 1 and seen["second"]
+        assert all(len(cpus) == 1 and cpus != network for cpus in seen["second"])
+    else:
+        assert network == before and set(seen["second"]) <= {before}

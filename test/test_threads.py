@@ -11,7 +11,7 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, deferred, one_torch_thread,
+from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, deferred, kept_apart, one_torch_thread,
                                    pinned_solve_threads, single_blas_thread, solve_cpus)
 from gcn_match_ros.timing import StageTimes, stage
 
@@ -278,3 +278,93 @@ def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each
     with pytest.raises(ValueError, match="not one this process may use"):
         with pinned_solve_threads(max(PROCESS_CPUS) + 1):
             pass
+
+
+def _second_cpus():
+    return _second_thread().submit(os.sched_getaffinity, 0).result()
+
+
+def _in_thread(fn):
+    """fn() on a new thread (a solving thread of its own, as the node's worker), its value returned."""
+    out = {}
+    t = threading.Thread(target=lambda: out.setdefault("value", fn()))
+    t.start()
+    t.join()
+    return out["value"]
+
+
+@needs_two_cpus
+def test_kept_apart_keeps_the_caller_on_its_cpu_and_the_second_thread_on_the_next_then_gives_both_back():
+    torch_threads, second_before = torch.get_num_threads(), _second_cpus()
+
+    def solve():
+        before = os.sched_getaffinity(0)
+        with kept_apart():
+            mine, torch_inside = os.sched_getaffinity(0), torch.get_num_threads()
+            with alongside(lambda: os.sched_getaffinity(0)) as pending:  # the work beside runs there
+                beside = pending.result()
+            with kept_apart():  # nested (a solve inside a stream's window): already placed
+                nested = os.sched_getaffinity(0), _second_cpus()
+            still = os.sched_getaffinity(0), _second_cpus()
+        return before, mine, torch_inside, beside, nested, still, os.sched_getaffinity(0)
+
+    before, mine, torch_inside, beside, nested, still, after = _in_thread(solve)
+    assert len(mine) == 1 and torch_inside == 1
+    (cpu,) = mine
+    assert beside == {solve_cpus(cpu)[1]} and beside != mine
+    assert nested == still == (mine, beside)  # the inner block neither placed nor gave back
+    assert after == before and _second_cpus() == second_before and torch.get_num_threads() == torch_threads
+
+
+@needs_two_cpus
+def test_kept_apart_places_nothing_when_disabled_or_when_the_caller_is_already_on_one_cpu():
+    second_before = _second_cpus()
+
+    def disabled():
+        with kept_apart(False):
+            return os.sched_getaffinity(0), _second_cpus(), torch.get_num_threads()
+
+    assert _in_thread(disabled) == (set(PROCESS_CPUS), second_before, torch.get_num_threads())
+
+    def pinned():  # the node's cpu_affinity: fixed CPUs for the worker's life
+        with pinned_solve_threads(PROCESS_CPUS[1]) as (first, second):
+            with kept_apart():
+                inside = os.sched_getaffinity(0), _second_cpus()
+            return (first, second), inside, (os.sched_getaffinity(0), _second_cpus())
+
+    (first, second), inside, after = _in_thread(pinned)
+    assert inside == after == ({first}, {second})
+    assert _second_cpus() == second_before
+
+
+@needs_two_cpus
+def test_one_thread_places_the_second_thread_at_a_time():
+    """The second thread serves the whole process: a thread's block that found it placed by
+    another's places nothing (kept_apart) or says why (pinned_solve_threads), so that each block
+    gives back what it found."""
+    second_before = _second_cpus()
+    placed, release = threading.Event(), threading.Event()
+
+    def holder():
+        with pinned_solve_threads(PROCESS_CPUS[0]):
+            placed.set()
+            release.wait(10)
+
+    t = threading.Thread(target=holder)
+    t.start()
+    try:
+        assert placed.wait(10)
+        held = _second_cpus()
+
+        def other():
+            with kept_apart():
+                return os.sched_getaffinity(0), _second_cpus()
+
+        assert _in_thread(other) == (set(PROCESS_CPUS), held)
+        with pytest.raises(ValueError, match="placed for another thread's solves"):
+            with pinned_solve_threads(PROCESS_CPUS[1]):
+                pass
+    finally:
+        release.set()
+        t.join()
+    assert _second_cpus() == second_before

@@ -72,6 +72,9 @@ __all__ = ["MatcherNode", "LifecycleMatcherNode", "StartupError", "create_solver
 
 NODE_NAME = "matcher_node"
 _THROTTLE_S = 5.0
+#: /diagnostics' "solve CPUs" without cpu_affinity: the solver keeps its two threads on two CPUs
+#: chosen anew for every window (threads.kept_apart)
+PER_WINDOW = "chosen per window"
 
 
 class StartupError(RuntimeError):
@@ -175,7 +178,7 @@ class _Matcher:
                 solve_cpus(self._cpu_affinity)
             except ValueError as exc:
                 raise StartupError(f"parameter cpu_affinity={self._cpu_affinity}: {exc}") from None
-        self._solve_cpus = "any"
+        self._solve_cpus = PER_WINDOW
 
         t0 = time.perf_counter()
         single_blas_thread()
@@ -378,10 +381,10 @@ class _Matcher:
                     self._solve_cpus = ", ".join(str(c) for c in cpus)
                     self.get_logger().info(f"solving on CPUs {self._solve_cpus}")
                 except (ValueError, OSError) as exc:  # the CPUs were taken away since configure
-                    self.get_logger().error(f"cpu_affinity={self._cpu_affinity}: {exc}; the OS places the "
-                                            "solve's threads")
+                    self.get_logger().error(f"cpu_affinity={self._cpu_affinity}: {exc}; the solve's CPUs "
+                                            "are chosen per window")
             self._serve()
-        self._solve_cpus = "any"
+        self._solve_cpus = PER_WINDOW
 
     def _serve(self) -> None:
         """Solve the pending window, one after another, until stopped."""

@@ -82,10 +82,12 @@ MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
                                                 "the best-scored, down to this many, rather than only drop windows; "
                                                 "back up when the worker keeps up; 0: never.", read_only=True,
                   low=0, high=100000),
-    ParameterSpec("cpu_affinity", -1, "First of two CPUs for the solve: the worker thread runs on it and the "
-                                      "solver's second thread on the next CPU this process may use; -1: the "
-                                      "OS places them. Where the kernel packs the two onto one CPU after a "
-                                      "pause between windows, this keeps a core for each.",
+    ParameterSpec("cpu_affinity", -1, "First of two CPUs for the solve, always: the worker thread runs on it "
+                                      "and the solver's second thread on the next CPU this process may use "
+                                      "(for CPUs set aside for the matcher); -1: for each window, the CPU the "
+                                      "worker is on and the next, the OS placing both between windows. Either "
+                                      "keeps a core for each where the kernel would pack the two onto one CPU "
+                                      "after a pause between windows.",
                   read_only=True, low=-1, high=4095),
     ParameterSpec("diagnostics_period", 1.0, "Period of /diagnostics reports [s].", read_only=True,
                   low=0.05, high=60.0),

@@ -29,7 +29,7 @@ from ..problem import Problem, Result
 from ..rounding import greedy_tracks
 from ..similarity import DescriptorSimilarity
 from ..stream import StreamState
-from ..threads import Pending
+from ..threads import Pending, kept_apart
 from ..timing import StageTimes, stage
 
 __all__ = ["SoftMatches", "Solver", "SolverConfig", "build_config"]
@@ -175,6 +175,13 @@ class Solver(abc.ABC):
         return ()
 
     @property
+    def two_threads(self) -> bool:
+        """The method runs part of each window on the process's second thread
+        (:func:`gcn_match_ros.threads.alongside`), so :meth:`solve` keeps the two on two CPUs
+        (:func:`gcn_match_ros.threads.kept_apart`; read after :meth:`prepare`)."""
+        return False
+
+    @property
     def graph_config(self) -> GraphConfig:
         """The correspondence graph :meth:`solve` builds (read after :meth:`prepare`)."""
         return GRAPH_PRESETS[self.config.graph]
@@ -236,16 +243,17 @@ class Solver(abc.ABC):
             beside.start()
         with times.recording():
             self.prepare(problem)
-            similarity = DescriptorSimilarity(problem, top_k=self.similarity_top_k)
-            if graph is None and self.needs_graph:
-                with stage("graph"):
-                    graph = build_graph(problem, self.graph_config, similarity)
-            with stage("match"):
-                soft, track = self.match(problem, graph, similarity, **extra)
-            if track is None:
-                with stage("rounding"):
-                    track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
-                                          soft.scores, self.threshold)
+            with kept_apart(self.two_threads):
+                similarity = DescriptorSimilarity(problem, top_k=self.similarity_top_k)
+                if graph is None and self.needs_graph:
+                    with stage("graph"):
+                        graph = build_graph(problem, self.graph_config, similarity)
+                with stage("match"):
+                    soft, track = self.match(problem, graph, similarity, **extra)
+                if track is None:
+                    with stage("rounding"):
+                        track = greedy_tracks(problem.n_keypoints, problem.view_index, soft.rows, soft.cols,
+                                              soft.scores, self.threshold)
         seconds = time.perf_counter() - start
         return Result(track=track, pair_rows=soft.rows, pair_cols=soft.cols, pair_scores=soft.scores,
                       seconds=seconds, method=self.describe(), timings=times.seconds)

@@ -295,6 +295,12 @@ class GCNSolver(Solver):
         return dataclasses.replace(config, normalization=normalization)
 
     @property
+    def two_threads(self) -> bool:
+        """With ``parallel`` and a model with an edge head: its candidate edges run beside the
+        graph and the network (:meth:`match`)."""
+        return self.config.parallel and has_edge_head(self.model)
+
+    @property
     def similarity_top_k(self) -> Dict[str, int]:
         """The candidate edges' best lists (RANK_CAP + 1): computed at that k by whichever of the
         graph (which reads the first 4) and the candidate edges asks first."""
