@@ -46,7 +46,7 @@ from gcn_match_ros.experiments import describe_machine, python_speed, results_he
 REPO = Path(__file__).resolve().parents[1]
 
 GOAL = (4, 500, 0.050)  # cameras, keypoints per view, p95 seconds (with no drops at 10 Hz)
-AFFINITY = {False: "the OS places the solve's threads", True: "the solve's two threads pinned, a CPU each"}
+AFFINITY = {False: "the solve's two threads on two CPUs chosen per window", True: "the solve's two threads pinned, a CPU each"}
 
 
 def _parser():
@@ -67,7 +67,7 @@ def _parser():
     p.add_argument("--landmarks", default="true", choices=("true", "false"),
                    help="the node's landmarks parameter (false: no temporal association, to measure its cost)")
     p.add_argument("--cpu-affinity", type=int, default=-1,
-                   help="the node's cpu_affinity parameter (default -1: the OS places the solve's threads)")
+                   help="the node's cpu_affinity parameter (default -1: two CPUs chosen per window)")
     p.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "node_latency.md")
     return p

@@ -78,10 +78,10 @@ def solve_window(solver, problem: Problem, state: StreamState, stamp_ns: int,
     # The landmark search needs no tracks: it runs on the second thread once the solve leaves
     # that thread idle (Solver.solve's ``beside``), this thread takes the chunks still left once
     # the solve is done, and the association then takes its result.
-    # The solver's placement of its two threads (Solver.two_threads) lasts to the end of the search.
+    # The solver's placement of its two threads (Solver.keeps_threads_apart) lasts to the end of the search.
     search = state.landmarks.search_job(problem.camera_ids, problem.view_offsets, problem.keypoints,
                                         problem.descriptors, int(stamp_ns))
-    with kept_apart(solver.two_threads), deferred(search.help) as beside:
+    with kept_apart(solver.keeps_threads_apart), deferred(search.help) as beside:
         result = solver.solve(problem, stream=state, beside=beside)
         start = time.perf_counter()
         beside.start()  # where the solver left it unstarted (one-thread solves): both threads search

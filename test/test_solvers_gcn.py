@@ -388,12 +388,12 @@ def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_id
 
 
 @needs_two_cpus
-@pytest.mark.parametrize("spec", ["gcn", "gcn:parallel=false"])
+@pytest.mark.parametrize("spec", ["gcn", "gcn:parallel=false", "gcn:keep_apart=false"])
 def test_a_solve_on_two_threads_keeps_them_on_two_cpus_to_the_end_of_its_landmark_search(monkeypatch, spec):
-    """``Solver.two_threads`` (gcn with ``parallel``): while a window is solved, the network's
-    thread stays on its CPU and the candidate edges and the stream's landmark search run on
-    another (threads.kept_apart); every thread's CPUs as before once the window is done. On one
-    thread nothing is placed."""
+    """``Solver.keeps_threads_apart`` (gcn with ``parallel`` and ``keep_apart``): while a window is
+    solved, the network's thread stays on its CPU and the candidate edges and the stream's
+    landmark search run on another (threads.kept_apart); every thread's CPUs as before once the
+    window is done. On one thread, or with keep_apart=false, nothing is placed."""
     import os
     import threading
 
@@ -417,7 +417,7 @@ def test_a_solve_on_two_threads_keeps_them_on_two_cpus_to_the_end_of_its_landmar
     monkeypatch.setattr(CandidateJob, "_pair", recorded(CandidateJob._pair))
     monkeypatch.setattr(LandmarkSearch, "help", recorded(LandmarkSearch.help))
     solver = solvers.create(spec)
-    assert solver.two_threads == solver.config.parallel
+    assert solver.keeps_threads_apart == (spec == "gcn")
     problem = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=80), np.random.default_rng(4))
     problem = dataclasses.replace(problem, camera_ids=("a", "b", "c"))
     before = frozenset(os.sched_getaffinity(0))
@@ -425,7 +425,7 @@ def test_a_solve_on_two_threads_keeps_them_on_two_cpus_to_the_end_of_its_landmar
     solve_window(solver, problem, StreamState(), 10**8)
     assert os.sched_getaffinity(0) == before
     (network,) = set(seen["network"])
-    if solver.two_threads:
+    if solver.keeps_threads_apart:
         assert len(network) == 1 and seen["second"]
         assert all(len(cpus) == 1 and cpus != network for cpus in seen["second"])
     else:

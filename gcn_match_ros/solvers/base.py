@@ -175,10 +175,10 @@ class Solver(abc.ABC):
         return ()
 
     @property
-    def two_threads(self) -> bool:
+    def keeps_threads_apart(self) -> bool:
         """The method runs part of each window on the process's second thread
-        (:func:`gcn_match_ros.threads.alongside`), so :meth:`solve` keeps the two on two CPUs
-        (:func:`gcn_match_ros.threads.kept_apart`; read after :meth:`prepare`)."""
+        (:func:`gcn_match_ros.threads.alongside`) and :meth:`solve` keeps the two on two CPUs
+        meanwhile (:func:`gcn_match_ros.threads.kept_apart`; read after :meth:`prepare`)."""
         return False
 
     @property
@@ -243,7 +243,7 @@ class Solver(abc.ABC):
             beside.start()
         with times.recording():
             self.prepare(problem)
-            with kept_apart(self.two_threads):
+            with kept_apart(self.keeps_threads_apart):
                 similarity = DescriptorSimilarity(problem, top_k=self.similarity_top_k)
                 if graph is None and self.needs_graph:
                     with stage("graph"):

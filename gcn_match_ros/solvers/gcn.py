@@ -139,6 +139,10 @@ class GCNSolverConfig(SolverConfig):
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
+        keep_apart: with ``parallel``, keep the two threads on two CPUs while a window is solved,
+            the one the solving thread is on and the next (:func:`gcn_match_ros.threads.kept_apart`:
+            where a kernel packs light loads onto one CPU, the node's 4 x 500 p95 ~50 -> ~42 ms on
+            this project's VM); the same results either way. False: the OS places them.
     """
 
     graph: str = "checkpoint"
@@ -163,6 +167,7 @@ class GCNSolverConfig(SolverConfig):
     planar_ratio: float = -1.0
     support_threshold: float = 0.0
     parallel: bool = True
+    keep_apart: bool = True
 
     def __post_init__(self) -> None:
         if self.graph != "checkpoint" and self.graph not in GRAPH_PRESETS:
@@ -295,10 +300,10 @@ class GCNSolver(Solver):
         return dataclasses.replace(config, normalization=normalization)
 
     @property
-    def two_threads(self) -> bool:
-        """With ``parallel`` and a model with an edge head: its candidate edges run beside the
-        graph and the network (:meth:`match`)."""
-        return self.config.parallel and has_edge_head(self.model)
+    def keeps_threads_apart(self) -> bool:
+        """``keep_apart`` where the candidate edges run beside the graph and the network
+        (``parallel``, a model with an edge head: :meth:`match`)."""
+        return self.config.keep_apart and self.config.parallel and has_edge_head(self.model)
 
     @property
     def similarity_top_k(self) -> Dict[str, int]:
