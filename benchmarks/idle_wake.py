@@ -18,6 +18,10 @@ landmarks on, as the node) solved in rounds that alternate the modes (so drift h
 - pinned: back to back and at 10 Hz with the solve's two threads each on a CPU of its own
   (:func:`gcn_match_ros.threads.pinned_solve_threads`, the node's ``cpu_affinity``).
 
+The modes not pinned place the threads as the solver does: ``gcn`` keeps them on two CPUs chosen
+for every window (:func:`gcn_match_ros.threads.kept_apart`), ``--solver gcn:keep_apart=false``
+leaves them to the OS (what every mode but the pinned ones measured before that placement).
+
 Each mode also reports the process's CPU time a window (both threads): where two busy threads
 share one core, a window's wall time follows it. A second table checks the machine for that
 without the matcher: bursts of a fixed compiled loop (``--burst-ms`` on one core) run on two

@@ -41,12 +41,21 @@ from pathlib import Path
 
 import numpy as np
 
+from gcn_match_ros import solvers
 from gcn_match_ros.experiments import describe_machine, python_speed, results_header, write_results, run_note
 
 REPO = Path(__file__).resolve().parents[1]
 
 GOAL = (4, 500, 0.050)  # cameras, keypoints per view, p95 seconds (with no drops at 10 Hz)
-AFFINITY = {False: "the solve's two threads on two CPUs chosen per window", True: "the solve's two threads pinned, a CPU each"}
+
+
+def thread_placement(solver: str, cpu_affinity: int) -> str:
+    """How the node places the solve's threads, in words, for the results' header."""
+    if cpu_affinity >= 0:
+        return "the solve's two threads pinned, a CPU each"
+    if solvers.create(solver).keeps_threads_apart:
+        return "the solve's two threads on two CPUs chosen per window"
+    return "the OS places the solve's threads"
 
 
 def _parser():
@@ -344,7 +353,7 @@ def main(argv=None) -> int:
 {run_note(seconds, speed_before)}
 
 Solver `{solver}`{note}, landmarks {'on' if args.landmarks == 'true' else 'off'}, node parameter
-`cpu_affinity:={args.cpu_affinity}` ({AFFINITY[args.cpu_affinity >= 0]}); every camera publishes one
+`cpu_affinity:={args.cpu_affinity}` ({thread_placement(solver, args.cpu_affinity)}); every camera publishes one
 Keypoints frame per capture at {args.rate:g} Hz
 (all stamped with the capture time; synthetic SIFT-like 128-D descriptors; {SCENES[args.scene]}), {args.duration:g} s measured after
 {args.warmup:g} s of warm-up per configuration; the node in its own process, input QoS `{args.input_qos}`,

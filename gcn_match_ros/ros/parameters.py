@@ -84,10 +84,11 @@ MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
                   low=0, high=100000),
     ParameterSpec("cpu_affinity", -1, "First of two CPUs for the solve, always: the worker thread runs on it "
                                       "and the solver's second thread on the next CPU this process may use "
-                                      "(for CPUs set aside for the matcher); -1: for each window, the CPU the "
-                                      "worker is on and the next, the OS placing both between windows. Either "
-                                      "keeps a core for each where the kernel would pack the two onto one CPU "
-                                      "after a pause between windows.",
+                                      "(for CPUs set aside for the matcher); -1: the solver's own placement "
+                                      "(gcn's keep_apart: for each window, the CPU the worker is on and the "
+                                      "next, the OS placing both between windows). Either keeps a core for "
+                                      "each where the kernel would pack the two onto one CPU after a pause "
+                                      "between windows.",
                   read_only=True, low=-1, high=4095),
     ParameterSpec("diagnostics_period", 1.0, "Period of /diagnostics reports [s].", read_only=True,
                   low=0.05, high=60.0),

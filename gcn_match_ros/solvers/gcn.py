@@ -140,9 +140,10 @@ class GCNSolverConfig(SolverConfig):
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
         keep_apart: with ``parallel``, keep the two threads on two CPUs while a window is solved,
-            the one the solving thread is on and the next (:func:`gcn_match_ros.threads.kept_apart`:
-            where a kernel packs light loads onto one CPU, the node's 4 x 500 p95 ~50 -> ~42 ms on
-            this project's VM); the same results either way. False: the OS places them.
+            the one the solving thread is on and the next (:func:`gcn_match_ros.threads.kept_apart`;
+            where a kernel packs light loads onto one CPU, as this project's VM's does, the node's
+            4 x 500 latency p95 48.8 -> 39.4 ms, benchmarks/results/node_latency_4x500_repeats.md);
+            the same results either way. False: the OS places them.
     """
 
     graph: str = "checkpoint"
