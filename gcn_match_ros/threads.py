@@ -33,9 +33,9 @@ solving thread is on and another, chosen anew for every window; :func:`pinned_so
 keeps them on two given CPUs. A kernel that packs threads onto few CPUs while the load is light
 (this project's 2-core VM: its guest kernel runs with ``sched_vcpu_pack``) puts the second thread
 on the first one's CPU when a window starts after a pause, and spreads them only under sustained
-load: at 10 Hz a 4 x 500 window then runs its two threads on one core for much of its time (p95 52
-ms against 43 pinned, benchmarks/results/idle_wake.md). Between windows the threads are the OS's
-to place, so a CPU another process takes holds a window's thread for one window at most.
+load: at 10 Hz a 4 x 500 window then runs its two threads on one core for much of its time (p95 51
+ms against 33 kept apart, benchmarks/results/idle_wake.md). Between windows the threads are the
+OS's to place, so a CPU another process takes holds a window's thread for one window at most.
 """
 from __future__ import annotations
 

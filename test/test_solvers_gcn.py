@@ -386,7 +386,6 @@ def test_work_beside_the_solve_runs_where_the_solver_leaves_the_second_thread_id
     np.testing.assert_array_equal(result.track, expected)
 
 
-
 @needs_two_cpus
 @pytest.mark.parametrize("spec", ["gcn", "gcn:parallel=false", "gcn:keep_apart=false"])
 def test_a_solve_on_two_threads_keeps_them_on_two_cpus_to_the_end_of_its_landmark_search(monkeypatch, spec):

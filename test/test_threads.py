@@ -1,5 +1,6 @@
 """Tests of gcn_match_ros.threads: numpy's BLAS on one thread, torch's pool untouched; work
-beside the caller on a second thread."""
+beside the caller on a second thread; the two threads placed on CPUs (pinned, kept apart per window)."""
+import concurrent.futures
 import contextlib
 import functools
 import os
@@ -285,12 +286,10 @@ def _second_cpus():
 
 
 def _in_thread(fn):
-    """fn() on a new thread (a solving thread of its own, as the node's worker), its value returned."""
-    out = {}
-    t = threading.Thread(target=lambda: out.setdefault("value", fn()))
-    t.start()
-    t.join()
-    return out["value"]
+    """fn() on a new thread (a solving thread of its own, as the node's worker): its value, or its
+    exception raised here."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        return pool.submit(fn).result()
 
 
 @needs_two_cpus
