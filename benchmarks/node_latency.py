@@ -126,12 +126,31 @@ def _captures(n_cams: int, n_kp: int, scene: str, seed: int = 0) -> list:
     return captures + captures[-2:0:-1]
 
 
+def detector_scores(gt_track: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Detector responses for synthetic keypoints, as a real detector's behave: a scene point's
+    strength (uniform in [0, 1), the same in every view) times a view's own factor (0.8-1.2), so
+    that a frame cut to its best-scored keypoints (the node's ``max_keypoints``, its keypoint budget
+    under load) keeps mostly points the other views keep too. Keypoints of no scene point
+    (``gt_track`` < 0) score uniformly. Without scores the node keeps the first rows, a random
+    subset of each view here: cut to 576 of 1000 keypoints, no camera pair kept a trusted model.
+
+    Shapes: gt_track (N,) int64 -> (N,) float32.
+    """
+    rng = np.random.default_rng([seed, 7])
+    points = gt_track >= 0
+    strength = rng.random(int(gt_track.max()) + 1 if points.any() else 0)
+    scores = rng.random(gt_track.shape[0])
+    scores[points] = strength[gt_track[points]] * rng.uniform(0.8, 1.2, int(points.sum()))
+    return scores.astype(np.float32)
+
+
 def _messages(p, n_kp: int) -> list:
     """Keypoints messages (one per view, camera ids cam0, cam1, ...) of a problem's first ``n_kp``
-    keypoints of every view."""
+    keypoints of every view, with detector-like scores (:func:`detector_scores`)."""
     from gcn_match_ros.ros.conversions import frame_to_keypoints
     from gcn_match_ros.windowing import Frame
 
+    scores = detector_scores(p.gt_track)
     msgs = []
     for v in range(p.n_views):
         s = p.view_slice(v)
@@ -140,7 +159,8 @@ def _messages(p, n_kp: int) -> list:
                   frame_id=f"cam{v}_optical_frame",
                   scales=None if p.scales is None else p.scales[idx],
                   orientations=None if p.orientations is None else p.orientations[idx],
-                  K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]), descriptor_name="sift")
+                  scores=scores[idx], K=p.K[v], image_size=tuple(int(x) for x in p.image_size[v]),
+                  descriptor_name="sift")
         msgs.append(frame_to_keypoints(f))
     return msgs
 
