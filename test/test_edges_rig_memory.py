@@ -86,6 +86,28 @@ def test_an_untrusted_fit_is_not_remembered_and_backs_off():
     assert rig.model(("a", "c"), other.xa, other.xb, other) is not None and other.calls == 1
 
 
+def test_a_backing_off_pair_is_probed_before_it_is_fitted_again():
+    """``may_fit``: the cheap check asked before re-fitting a pair whose last fit failed (not
+    before its first fit); no support there, no fit, and the pair backs off as after a failed
+    fit; support there, the fit."""
+    rng = np.random.default_rng(3)
+    rig = RigMemory()
+    xa, xb = rng.uniform(0, 640, (40, 2)), rng.uniform(0, 640, (40, 2))  # no geometry at all
+    fit, asked = _CountingFit(xa, xb), []
+
+    def may_fit():
+        asked.append(True)
+        return False
+
+    looked_at = [rig.model(("a", "b"), xa, xb, fit, may_fit=may_fit) for _ in range(15)]
+    assert looked_at == [None] * 15 and fit.calls == 1  # fitted once, then only probed
+    assert len(asked) == rig.probed == 3 and rig.fitted == 1  # windows 2, 6 and 14, as fits were
+    assert rig.skipped == 11
+    good = _CountingFit(*_seeds(H_A, rng))
+    found = [rig.model(("a", "b"), good.xa, good.xb, good, may_fit=lambda: True) for _ in range(MAX_SKIPPED + 1)]
+    assert any(m is not None for m in found) and good.calls == 1
+
+
 def test_a_pair_whose_model_fails_is_refitted_at_once():
     """Back-off is for pairs without a model: a remembered model that fails its re-check is
     re-fitted in the same window (never matched with the stale one)."""

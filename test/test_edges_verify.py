@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gcn_match_ros import geometry
-from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, check_planar_ratio, fit_pair, residuals
+from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, RANSAC_PX, MIN_INLIERS, MIN_SEEDS, PairModel, check_planar_ratio, fit_pair, may_be_trusted, residuals
 
 from conftest import look_at
 
@@ -213,3 +213,20 @@ def test_a_models_inverse_homography_is_computed_once_and_none_where_singular():
     rh, rf = residuals(singular, np.zeros((3, 2)), np.ones((3, 2)))
     assert np.isinf(rh).all() and np.isinf(rf).all()  # no pair agrees with a singular H
     assert PairModel(H=None, F=np.eye(3)).H_inverse is None
+
+
+def test_may_be_trusted_answers_as_the_full_fit_on_scenes_planes_and_seeds_without_geometry():
+    """The cheap probe (H and F from pixels) says yes where fit_pair gives a trusted model,
+    calibrated or not, and no for seed pairs of two views that share no scene."""
+    rng = np.random.default_rng(6)
+    xa, xb, _ = _non_planar_pairs(rng)
+    plane_a, plane_b = _plane_and_off_plane_pairs(rng)
+    for a, b in ((xa, xb), (plane_a, plane_b)):
+        assert may_be_trusted(a, b)
+        assert fit_pair(a, b).trusted() and fit_pair(a, b, K_a=K, K_b=K).trusted()
+    for n in (20, 60, 200):
+        a, b = rng.uniform(0, 640, (n, 2)), rng.uniform(0, 640, (n, 2))
+        assert not may_be_trusted(a, b)
+        model = fit_pair(a, b, K_a=K, K_b=K)
+        assert model is None or not model.trusted()
+    assert not may_be_trusted(xa[:MIN_SEEDS - 1], xb[:MIN_SEEDS - 1])

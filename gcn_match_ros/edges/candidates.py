@@ -41,7 +41,7 @@ from ..threads import SharedTasks
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
-                     check_planar_ratio, fit_pair, residuals)
+                     check_planar_ratio, fit_pair, may_be_trusted, residuals)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
            "EDGE_FEATURES", "RANK_CAP"]
@@ -96,6 +96,15 @@ class EdgeConfig(JsonConfig):
             K_a = K_b = None
         return fit_pair(xa, xb, K_a=K_a, K_b=K_b, epipolar_px=self.epipolar_px, fine_px=self.fine_px,
                         planar_ratio=self.planar_ratio)
+
+    def may_fit(self, xa: np.ndarray, xb: np.ndarray) -> bool:
+        """Whether :meth:`fit` of these seed pairs could give a model these settings trust: the
+        cheap probe of a camera pair that failed before (:func:`.verify.may_be_trusted`).
+
+        Shapes: xa, xb (S, 2) pixels.
+        """
+        return may_be_trusted(xa, xb, epipolar_px=self.epipolar_px, min_inliers=self.min_inliers,
+                              min_inlier_ratio=self.min_inlier_ratio)
 
     def trusted(self, model: Optional[PairModel]) -> Optional[PairModel]:
         """``model`` with its selected H or F only when these settings trust its support
@@ -309,7 +318,8 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
                 return config.fit(xa[seed_a], xb[seed_b], K_a, K_b)
 
             if rig is not None:
-                model = rig.model(cameras, xa[seed_a], xb[seed_b], fit, config.min_inliers, config.min_inlier_ratio)
+                model = rig.model(cameras, xa[seed_a], xb[seed_b], fit, config.min_inliers, config.min_inlier_ratio,
+                                  may_fit=lambda: config.may_fit(xa[seed_a], xb[seed_b]))
             else:
                 model = config.trusted(fit())
     guided = np.zeros(ea.shape[0], bool)

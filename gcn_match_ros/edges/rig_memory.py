@@ -13,8 +13,11 @@ A camera pair whose fit gives no trusted model — cameras that point different 
 no scene — backs off: after k failed fits in a row it is not fitted for the next
 min(2ᵏ − 1, :data:`MAX_SKIPPED`) windows (1, 3, 7, 7, ...) and has no model there, as it would
 have after another failed fit. A failed fit runs RANSAC to its last iteration (~27 ms a pair
-on the generated 4-camera rigs, where three of six pairs never overlap: 81 of a window's 200
-ms). A pair that comes to overlap is found again within MAX_SKIPPED + 1 windows.
+on the generated 4-camera rigs, where three of six pairs never overlap, most of it the essential
+matrix's), so a backing-off pair is probed first when the caller gives a cheap check
+(``may_fit``: :func:`.verify.may_be_trusted`, H and F from pixels, ~3 ms): no support there, no
+fit, and it backs off again (counted as ``probed``). A pair that comes to overlap is found again
+within MAX_SKIPPED + 1 windows.
 
 The memory is per stream (one per matcher node, one per offline replay of a bag:
 :class:`gcn_match_ros.stream.StreamState`), used in window order; a problem without
@@ -46,9 +49,10 @@ class RigMemory:
     """Trusted two-view models by camera pair, and how often they were reused.
 
     Attributes:
-        reused, fitted, invalidated, skipped: counts of model look-ups answered from memory, by
-            a new fit, of remembered models that failed the re-check (each also a fit), and of
-            look-ups of a backing-off pair answered with no model and no fit.
+        reused, fitted, invalidated, skipped, probed: counts of model look-ups answered from
+            memory, by a new fit, of remembered models that failed the re-check (each also a fit),
+            of look-ups of a backing-off pair answered with no model and no fit, and of those
+            answered by a probe that found no support (no fit either).
     """
 
     def __init__(self) -> None:
@@ -59,6 +63,7 @@ class RigMemory:
         self.fitted = 0
         self.invalidated = 0
         self.skipped = 0
+        self.probed = 0
         self._counting = threading.Lock()
 
     def __len__(self) -> int:
@@ -70,7 +75,8 @@ class RigMemory:
 
     def model(self, cameras: CameraPair, seeds_a: np.ndarray, seeds_b: np.ndarray,
               fit: Callable[[], Optional[PairModel]], min_inliers: int = MIN_INLIERS,
-              min_inlier_ratio: float = MIN_INLIER_RATIO) -> Optional[PairModel]:
+              min_inlier_ratio: float = MIN_INLIER_RATIO,
+              may_fit: Optional[Callable[[], bool]] = None) -> Optional[PairModel]:
         """The trusted (selected) model of ``cameras`` for this window, or None.
 
         Args:
@@ -78,6 +84,8 @@ class RigMemory:
             seeds_a, seeds_b: (S, 2) this window's seed pairs, pixels.
             fit: fits a model on those seeds (called only when memory cannot answer).
             min_inliers, min_inlier_ratio: the trust rule (:meth:`PairModel.trusted`).
+            may_fit: a cheap check that ``fit`` could give a trusted model, asked before
+                re-fitting a pair whose last fit failed (module docstring); None: always fit.
         """
         remembered = self._models.get(cameras)
         if remembered is not None:
@@ -93,14 +101,21 @@ class RigMemory:
             self._skips_left[cameras] -= 1
             self._count("skipped")
             return None
+        if cameras in self._failures and may_fit is not None and not may_fit():
+            self._count("probed")
+            return self._failed(cameras)
         self._count("fitted")
         model = fit()
         if model is None or not model.trusted(min_inliers, min_inlier_ratio):
-            failures = self._failures.get(cameras, 0) + 1
-            self._failures[cameras] = failures
-            self._skips_left[cameras] = min(2 ** failures - 1, MAX_SKIPPED)
-            return None
+            return self._failed(cameras)
         self._failures.pop(cameras, None)
         model = model.selected()
         self._models[cameras] = (model, model.inlier_share)
         return model
+
+    def _failed(self, cameras: CameraPair) -> None:
+        """One more failed fit of ``cameras`` in a row: back off (module docstring)."""
+        failures = self._failures.get(cameras, 0) + 1
+        self._failures[cameras] = failures
+        self._skips_left[cameras] = min(2 ** failures - 1, MAX_SKIPPED)
+        return None

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..geometry import sampson_distance, unproject
 
-__all__ = ["PairModel", "fit_pair", "residuals", "model_matrices", "matrix_residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
+__all__ = ["PairModel", "fit_pair", "may_be_trusted", "residuals", "model_matrices", "matrix_residuals", "trusted_support", "MIN_SEEDS", "RANSAC_PX", "EPIPOLAR_PX", "FINE_PX",
            "FINE_SHARE", "PLANAR_RATIO", "MIN_INLIERS", "MIN_INLIER_RATIO", "AGREE_SIGMAS", "AGREE_MIN_PX",
            "transfer_error_px", "sampson_error_px"]
 
@@ -84,6 +84,34 @@ def trusted_support(inliers: int, seeds: int, min_inliers: int = MIN_INLIERS,
     """Whether a model explaining ``inliers`` of ``seeds`` pairs may be believed: at least
     ``min_inliers`` of them, making at least ``min_inlier_ratio`` of the seeds."""
     return inliers >= min_inliers and inliers >= min_inlier_ratio * seeds
+
+
+def may_be_trusted(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, epipolar_px: float = EPIPOLAR_PX,
+                   min_inliers: int = MIN_INLIERS, min_inlier_ratio: float = MIN_INLIER_RATIO,
+                   seed: int = 0, max_iters: int = 2000) -> bool:
+    """Whether a fit of these seed pairs (:func:`fit_pair`) could give a trusted model: the fits
+    from pixels, H and F, as :func:`fit_pair` runs them, reach trusted support
+    (:func:`trusted_support`). An essential matrix's inliers are a fundamental matrix's
+    (F = K_b^-T E K_a^-1), so where no F reaches that support no E does either, up to RANSAC's
+    chance; E's failure is the dear one (1 000 iterations, then USAC_MAGSAC again: ~27 ms on 120
+    seeds that share no scene, against ~3 ms for H and F).
+
+    Shapes: xa, xb (S, 2) pixels.
+    """
+    n = xa.shape[0]
+    if n < MIN_SEEDS:
+        return False
+    a = np.ascontiguousarray(xa, np.float64)
+    b = np.ascontiguousarray(xb, np.float64)
+    cv2.setRNGSeed(seed)
+    try:
+        _, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=max_iters, confidence=0.999)
+    except cv2.error:
+        mh = None
+    if mh is not None and trusted_support(int(mh.sum()), n, min_inliers, min_inlier_ratio):
+        return True
+    _, nf = _fit_fundamental(a, b, epipolar_px, seed, EPIPOLAR_ESTIMATOR, max_iters)
+    return trusted_support(nf, n, min_inliers, min_inlier_ratio)
 
 
 @dataclasses.dataclass

@@ -484,6 +484,7 @@ class _Matcher:
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),
                        "rig pairs skipped (backing off)": str(self._stream.rig.skipped),
+                       "rig pairs probed (no support, not fitted)": str(self._stream.rig.probed),
                        "landmarks live": str(len(self._stream.landmarks)),
                        "landmarks born": str(self._stream.landmarks.born),
                        "keypoint budget": str(self._budget.current),
