@@ -103,12 +103,8 @@ def may_be_trusted(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, epipol
         return False
     a = np.ascontiguousarray(xa, np.float64)
     b = np.ascontiguousarray(xb, np.float64)
-    cv2.setRNGSeed(seed)
-    try:
-        _, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=max_iters, confidence=0.999)
-    except cv2.error:
-        mh = None
-    if mh is not None and trusted_support(int(mh.sum()), n, min_inliers, min_inlier_ratio):
+    H, nh = _fit_homography(a, b, px, seed, max_iters)
+    if H is not None and trusted_support(nh, n, min_inliers, min_inlier_ratio):
         return True
     _, nf = _fit_fundamental(a, b, epipolar_px, seed, EPIPOLAR_ESTIMATOR, max_iters)
     return trusted_support(nf, n, min_inliers, min_inlier_ratio)
@@ -216,16 +212,7 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
         return None
     a = np.ascontiguousarray(xa, np.float64)
     b = np.ascontiguousarray(xb, np.float64)
-    cv2.setRNGSeed(seed)
-    H, nh = None, 0
-    try:
-        H, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=max_iters, confidence=0.999)
-        if H is None or mh is None or int(mh.sum()) < 8 or abs(np.linalg.det(H)) < 1e-8:
-            H = None
-        else:
-            nh = int(mh.sum())
-    except cv2.error:
-        H = None
+    H, nh = _fit_homography(a, b, px, seed, max_iters)
     calibrated = K_a is not None and K_b is not None
 
     def fit_epipolar(threshold: float, iters: Optional[int] = None) -> Tuple[Optional[np.ndarray], int]:
@@ -259,6 +246,19 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
         agree_px = float(np.clip(AGREE_SIGMAS * sigma, min(AGREE_MIN_PX, fit_px), fit_px))
     return PairModel(H, F, planar, seeds=n, inliers_h=nh, inliers_f=nf, essential=calibrated and F is not None,
                      px=px, epipolar_px=agree_px, epipolar_fit_px=fit_px)
+
+
+def _fit_homography(a: np.ndarray, b: np.ndarray, px: float, seed: int,
+                    max_iters: int) -> Tuple[Optional[np.ndarray], int]:
+    """H (None if it fails or is singular) and its inlier count (0 without H)."""
+    cv2.setRNGSeed(seed)
+    try:
+        H, mh = cv2.findHomography(a, b, cv2.USAC_MAGSAC, px, maxIters=max_iters, confidence=0.999)
+    except cv2.error:
+        return None, 0
+    if H is None or mh is None or int(mh.sum()) < 8 or abs(np.linalg.det(H)) < 1e-8:
+        return None, 0
+    return H, int(mh.sum())
 
 
 def _fit_fundamental(a: np.ndarray, b: np.ndarray, px: float, seed: int,
