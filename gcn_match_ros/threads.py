@@ -61,7 +61,6 @@ _second_tid: Optional[int] = None  # the second thread's id for the OS (sched_se
 _second_placed = False  # inside a pinned_solve_threads block
 _cores_taken = 0     # started functions whose results are not yet taken (_take_core)
 _threads_before = 1  # the caller's torch threads before the first of them
-_apart = threading.local()  # .active: this thread is inside kept_apart
 # glibc's sched_getcpu: the CPU the calling thread runs on (Python has no binding)
 _libc = ctypes.CDLL(None) if hasattr(os, "sched_setaffinity") else None
 
@@ -136,21 +135,18 @@ def kept_apart(enabled: bool = True) -> Iterator[None]:
     thread on the next CPU the process may use (:func:`pinned_solve_threads` for that CPU), for a
     solve that runs on both (see the module docstring for why); all as before once the block ends.
 
-    Nothing is placed when ``enabled`` is False, inside another ``kept_apart`` of this thread,
-    when the calling thread may run on one CPU only (:func:`pinned_solve_threads`, ``taskset``),
-    when the process has fewer than two CPUs, or where threads cannot be placed; nor when the
-    CPUs change under it meanwhile (the OS then places the threads, as it does outside the block).
+    Nothing is placed when ``enabled`` is False, when the calling thread may run on one CPU only
+    (inside another ``kept_apart`` of this thread, :func:`pinned_solve_threads`, ``taskset``), when
+    the process has fewer than two CPUs, or where threads cannot be placed; nor when the CPUs
+    change under it meanwhile (the OS then places the threads, as it does outside the block).
     """
     with contextlib.ExitStack() as placement:
-        cpu = _this_cpu() if enabled and not getattr(_apart, "active", False) else None
+        cpu = _this_cpu() if enabled else None
         if cpu is not None:
             try:
                 placement.enter_context(pinned_solve_threads(cpu))
             except (ValueError, OSError):
                 pass
-            else:
-                _apart.active = True
-                placement.callback(setattr, _apart, "active", False)
         yield
 
 
