@@ -314,12 +314,14 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
             seed_a = np.flatnonzero(mutual_ab)
             seed_b = ir[seed_a, 0]
         with stage("geometry"):
+            sa, sb = xa[seed_a], xb[seed_b]
+
             def fit() -> Optional[PairModel]:
-                return config.fit(xa[seed_a], xb[seed_b], K_a, K_b)
+                return config.fit(sa, sb, K_a, K_b)
 
             if rig is not None:
-                model = rig.model(cameras, xa[seed_a], xb[seed_b], fit, config.min_inliers, config.min_inlier_ratio,
-                                  may_fit=lambda: config.may_fit(xa[seed_a], xb[seed_b]))
+                model = rig.model(cameras, sa, sb, fit, config.min_inliers, config.min_inlier_ratio,
+                                  may_fit=lambda: config.may_fit(sa, sb))
             else:
                 model = config.trusted(fit())
     guided = np.zeros(ea.shape[0], bool)

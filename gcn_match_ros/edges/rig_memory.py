@@ -103,11 +103,13 @@ class RigMemory:
             return None
         if cameras in self._failures and may_fit is not None and not may_fit():
             self._count("probed")
-            return self._failed(cameras)
+            self._failed(cameras)
+            return None
         self._count("fitted")
         model = fit()
         if model is None or not model.trusted(min_inliers, min_inlier_ratio):
-            return self._failed(cameras)
+            self._failed(cameras)
+            return None
         self._failures.pop(cameras, None)
         model = model.selected()
         self._models[cameras] = (model, model.inlier_share)
@@ -118,4 +120,3 @@ class RigMemory:
         failures = self._failures.get(cameras, 0) + 1
         self._failures[cameras] = failures
         self._skips_left[cameras] = min(2 ** failures - 1, MAX_SKIPPED)
-        return None
