@@ -85,8 +85,8 @@ class Variant:
     """One solver on one window, alone (``stream`` False) or as a stream of that rig, with its
     timings so far."""
 
-    def __init__(self, spec: str, views: int, keypoints: int, stream: bool) -> None:
-        self.problem = rig_window(views, keypoints)
+    def __init__(self, spec: str, problem, stream: bool) -> None:
+        self.problem = problem
         self.solver = solvers.create(spec)
         self.stream = stream
         self.state = StreamState() if stream else None
@@ -127,7 +127,8 @@ def measure(specs, views: int, keypoints: int, repeats: int) -> list:
     Returns: per variant, {"spec", "views", "keypoints", "total" (median s), "stages" (medians),
     "landmarks" (median s or None), "rss_growth" (MB), "ratio" (the median of its time over the
     first variant's in the same round)}."""
-    variants = [Variant(spec, views, keypoints, stream) for spec in specs for stream in (False, True)]
+    problem = rig_window(views, keypoints)
+    variants = [Variant(spec, problem, stream) for spec in specs for stream in (False, True)]
     growth = [v.warm_up() for v in variants]
     for k in range(repeats):
         for v in variants:
