@@ -50,6 +50,12 @@ PROCESS_CPUS = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity
 needs_two_cpus = pytest.mark.skipif(len(PROCESS_CPUS) < 2, reason="needs Linux and two CPUs this process may use")
 
 
+def second_thread_cpus() -> set:
+    """The CPUs the process's second thread (threads.alongside) may run on now, asked on that thread."""
+    from gcn_match_ros.threads import _second_thread
+    return _second_thread().submit(os.sched_getaffinity, 0).result()
+
+
 def permuted_views_problem(n_views: int = 3, n_points: int = 12, dim: int = 16, noise: float = 0.0,
                            seed: int = 0) -> Problem:
     """V views of the same p points in random order; descriptors = point descriptor + noise."""

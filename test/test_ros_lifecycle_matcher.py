@@ -2,7 +2,6 @@
 services as a lifecycle manager would: configure loads the model (a bad parameter leaves it
 unconfigured), activate matches, deactivate stops matching and keeps the model, cleanup
 releases it, and it can be configured and activated again."""
-import os
 import time
 import uuid
 
@@ -12,12 +11,11 @@ from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
 
-from conftest import PROCESS_CPUS, PermutedScene, domain_id, needs_two_cpus
+from conftest import PROCESS_CPUS, PermutedScene, domain_id, needs_two_cpus, second_thread_cpus
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 from gcn_match_ros.ros.conversions import frame_to_keypoints
 from gcn_match_ros.ros.matcher_node import PER_WINDOW, LifecycleMatcherNode
 from gcn_match_ros.ros.testing import RosSession
-from gcn_match_ros.threads import _second_thread
 
 CAMS = ["cam0", "cam1", "cam2"]
 
@@ -107,7 +105,7 @@ def test_pinned_solve_threads_follow_activation():
     deactivated (so an inactive node leaves its process's threads as they were), then again."""
     allowed = PROCESS_CPUS
     torch_threads = torch.get_num_threads()
-    second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
+    second_before = second_thread_cpus()
     ns = f"/t{uuid.uuid4().hex[:10]}"
     with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
         node = session.add_node(LifecycleMatcherNode(context=session.context, namespace=ns, parameter_overrides=[
@@ -118,8 +116,8 @@ def test_pinned_solve_threads_follow_activation():
         for _ in range(2):
             assert manager.transition(Transition.TRANSITION_ACTIVATE)
             assert session.spin_until(lambda: node._solve_cpus == pinned)
-            assert _second_thread().submit(os.sched_getaffinity, 0).result() == {allowed[1]}
+            assert second_thread_cpus() == {allowed[1]}
             assert manager.transition(Transition.TRANSITION_DEACTIVATE)
             assert node._solve_cpus == PER_WINDOW and torch.get_num_threads() == torch_threads
-            assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
+            assert second_thread_cpus() == second_before
         assert manager.transition(Transition.TRANSITION_CLEANUP)

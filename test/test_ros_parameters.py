@@ -1,6 +1,5 @@
 """Tests of gcn_match_ros.ros.parameters: the matcher node's parameter table and its ROS descriptors (no DDS)."""
 import dataclasses
-import os
 import time
 
 import pytest
@@ -8,7 +7,6 @@ import torch
 from rcl_interfaces.msg import ParameterType
 
 from gcn_match_ros.ros.parameters import INPUT_QOS, MATCHER_PARAMETERS, WINDOW_PARAMETER_NAMES, ParameterSpec
-from gcn_match_ros.threads import _second_thread
 from gcn_match_ros.windowing import WindowConfig, window_parameters
 
 TYPE_OF_DEFAULT = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
@@ -91,13 +89,13 @@ def test_matcher_yaml_is_every_parameter_at_its_default():
 @pytest.mark.parametrize("name", sorted(p.name for p in CONFIG.glob("*.yaml")))
 def test_the_node_starts_from_each_parameter_file(name):
     from gcn_match_ros.ros.matcher_node import PER_WINDOW, MatcherNode
-    from conftest import domain_id
+    from conftest import domain_id, second_thread_cpus
     from gcn_match_ros.ros.testing import RosSession
 
     wanted = yaml.safe_load((CONFIG / name).read_text())["/**/matcher_node"]["ros__parameters"]
     assert set(wanted) <= {spec.name for spec in MATCHER_PARAMETERS}, "unknown parameters in the file"
     torch_threads = torch.get_num_threads()
-    second_cpus = _second_thread().submit(os.sched_getaffinity, 0).result()
+    second_cpus = second_thread_cpus()
     with RosSession("tester", domain_id=domain_id()) as session:
         node = MatcherNode(context=session.context, namespace=f"/t{uuid.uuid4().hex[:10]}",
                            cli_args=["--ros-args", "--params-file", str(CONFIG / name)])
@@ -115,4 +113,4 @@ def test_the_node_starts_from_each_parameter_file(name):
             node.destroy_node()
     # a stopped node leaves this process's threads as they were (config/pinned.yaml pins them)
     assert torch.get_num_threads() == torch_threads
-    assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_cpus
+    assert second_thread_cpus() == second_cpus

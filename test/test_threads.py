@@ -12,11 +12,11 @@ import pytest
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from gcn_match_ros.threads import (SharedTasks, _second_thread, alongside, deferred, kept_apart, one_torch_thread,
+from gcn_match_ros.threads import (SharedTasks, alongside, deferred, kept_apart, one_torch_thread,
                                    pinned_solve_threads, single_blas_thread, solve_cpus)
 from gcn_match_ros.timing import StageTimes, stage
 
-from conftest import PROCESS_CPUS, needs_two_cpus
+from conftest import PROCESS_CPUS, needs_two_cpus, second_thread_cpus
 
 
 def test_single_blas_thread_limits_numpys_blas_and_leaves_torch_alone():
@@ -254,7 +254,7 @@ def test_solve_cpus_are_the_given_one_and_the_next_allowed_wrapping_around():
 def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each_and_give_them_back():
     """Entered by a thread that solves (the node's worker), as the node does."""
     torch_threads = torch.get_num_threads()
-    second_before = _second_thread().submit(os.sched_getaffinity, 0).result()
+    second_before = second_thread_cpus()
     seen = {}
 
     def worker():
@@ -274,15 +274,11 @@ def test_pinned_solve_threads_put_the_caller_and_the_second_thread_on_a_cpu_each
     assert (first, second) == solve_cpus(PROCESS_CPUS[1])
     assert seen["mine"] == {first} and seen["beside"] == {second} and seen["torch"] == 1
     assert seen["mine after"] and torch.get_num_threads() == torch_threads
-    assert _second_thread().submit(os.sched_getaffinity, 0).result() == second_before
+    assert second_thread_cpus() == second_before
     assert os.sched_getaffinity(0) == set(PROCESS_CPUS)  # other threads stay where they were
     with pytest.raises(ValueError, match="not one this process may use"):
         with pinned_solve_threads(max(PROCESS_CPUS) + 1):
             pass
-
-
-def _second_cpus():
-    return _second_thread().submit(os.sched_getaffinity, 0).result()
 
 
 def _in_thread(fn):
@@ -294,7 +290,7 @@ def _in_thread(fn):
 
 @needs_two_cpus
 def test_kept_apart_keeps_the_caller_on_its_cpu_and_the_second_thread_on_the_next_then_gives_both_back():
-    torch_threads, second_before = torch.get_num_threads(), _second_cpus()
+    torch_threads, second_before = torch.get_num_threads(), second_thread_cpus()
 
     def solve():
         before = os.sched_getaffinity(0)
@@ -303,8 +299,8 @@ def test_kept_apart_keeps_the_caller_on_its_cpu_and_the_second_thread_on_the_nex
             with alongside(lambda: os.sched_getaffinity(0)) as pending:  # the work beside runs there
                 beside = pending.result()
             with kept_apart():  # nested (a solve inside a stream's window): already placed
-                nested = os.sched_getaffinity(0), _second_cpus()
-            still = os.sched_getaffinity(0), _second_cpus()
+                nested = os.sched_getaffinity(0), second_thread_cpus()
+            still = os.sched_getaffinity(0), second_thread_cpus()
         return before, mine, torch_inside, beside, nested, still, os.sched_getaffinity(0)
 
     before, mine, torch_inside, beside, nested, still, after = _in_thread(solve)
@@ -312,28 +308,28 @@ def test_kept_apart_keeps_the_caller_on_its_cpu_and_the_second_thread_on_the_nex
     (cpu,) = mine
     assert beside == {solve_cpus(cpu)[1]} and beside != mine
     assert nested == still == (mine, beside)  # the inner block neither placed nor gave back
-    assert after == before and _second_cpus() == second_before and torch.get_num_threads() == torch_threads
+    assert after == before and second_thread_cpus() == second_before and torch.get_num_threads() == torch_threads
 
 
 @needs_two_cpus
 def test_kept_apart_places_nothing_when_disabled_or_when_the_caller_is_already_on_one_cpu():
-    second_before = _second_cpus()
+    second_before = second_thread_cpus()
 
     def disabled():
         with kept_apart(False):
-            return os.sched_getaffinity(0), _second_cpus(), torch.get_num_threads()
+            return os.sched_getaffinity(0), second_thread_cpus(), torch.get_num_threads()
 
     assert _in_thread(disabled) == (set(PROCESS_CPUS), second_before, torch.get_num_threads())
 
     def pinned():  # the node's cpu_affinity: fixed CPUs for the worker's life
         with pinned_solve_threads(PROCESS_CPUS[1]) as (first, second):
             with kept_apart():
-                inside = os.sched_getaffinity(0), _second_cpus()
-            return (first, second), inside, (os.sched_getaffinity(0), _second_cpus())
+                inside = os.sched_getaffinity(0), second_thread_cpus()
+            return (first, second), inside, (os.sched_getaffinity(0), second_thread_cpus())
 
     (first, second), inside, after = _in_thread(pinned)
     assert inside == after == ({first}, {second})
-    assert _second_cpus() == second_before
+    assert second_thread_cpus() == second_before
 
 
 @needs_two_cpus
@@ -341,7 +337,7 @@ def test_one_thread_places_the_second_thread_at_a_time():
     """The second thread serves the whole process: a thread's block that found it placed by
     another's places nothing (kept_apart) or says why (pinned_solve_threads), so that each block
     gives back what it found."""
-    second_before = _second_cpus()
+    second_before = second_thread_cpus()
     placed, release = threading.Event(), threading.Event()
 
     def holder():
@@ -353,11 +349,11 @@ def test_one_thread_places_the_second_thread_at_a_time():
     t.start()
     try:
         assert placed.wait(10)
-        held = _second_cpus()
+        held = second_thread_cpus()
 
         def other():
             with kept_apart():
-                return os.sched_getaffinity(0), _second_cpus()
+                return os.sched_getaffinity(0), second_thread_cpus()
 
         assert _in_thread(other) == (set(PROCESS_CPUS), held)
         with pytest.raises(ValueError, match="placed for another thread's solves"):
@@ -366,4 +362,4 @@ def test_one_thread_places_the_second_thread_at_a_time():
     finally:
         release.set()
         t.join()
-    assert _second_cpus() == second_before
+    assert second_thread_cpus() == second_before
