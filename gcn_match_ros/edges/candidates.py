@@ -423,9 +423,12 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
     """For each keypoint of a, the most similar keypoint of b within ``px`` of its epipolar line
     and with a within ``px`` of b's line (:func:`gcn_match_ros.geometry.epipolar_distance_matrix`
     < px), and the same for each keypoint of b; -1 where none. The first on ties, as argmax.
-    Compiled: one pass over the na x nb pairs, no distance matrix; per keypoint of a, the
-    distances of b's keypoints to its line are computed first in a loop of their own, which
-    vectorises (0.40 -> 0.25 ms a 500 x 500 pair).
+    Compiled: one pass over the na x nb pairs, no distance matrix. Per keypoint of a, a loop of
+    its own that vectorises puts b's keypoints against its line, undivided by the line's norm:
+    the few within a hair more than ``px`` of it are collected without branches, and only they
+    are tested as before, distance divided (so the same keypoints pass, bit for bit). 500 x 500:
+    0.40 ms testing every pair with a branch, 0.25 with the distances vectorised (one machine),
+    0.44 -> 0.30 ms collecting the near ones first (another).
 
     Shapes: sim (na, nb); la (na, 3) lines in b, lb (nb, 3) lines in a; xa (na, 2), xb (nb, 2)
     -> (na,), (nb,) int64.
@@ -439,14 +442,22 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
     for b in range(nb):
         norm_b[b] = max(math.sqrt(lb[b, 0] ** 2 + lb[b, 1] ** 2), 1e-12)
     xb_x, xb_y = xb[:, 0].copy(), xb[:, 1].copy()
-    to_line = np.empty(nb)
+    off_line = np.empty(nb)
+    near = np.empty(nb + 1, np.int64)
     for a in range(na):
         norm_a = max(math.sqrt(la[a, 0] ** 2 + la[a, 1] ** 2), 1e-12)
-        _distances_to_line(to_line, la[a], norm_a, xb_x, xb_y)
+        _off_line_into(off_line, la[a], xb_x, xb_y)
+        # off_line / norm_a < px implies off_line < px * norm_a up to rounding, which the
+        # margin covers: a superset of the keypoints that pass, each then tested exactly
+        reach = px * norm_a * (1.0 + 1e-9)
+        n_near = 0
         for b in range(nb):
-            if to_line[b] >= px:
-                continue  # most pairs: b is off a's line
-            if abs(xa[a, 0] * lb[b, 0] + xa[a, 1] * lb[b, 1] + lb[b, 2]) / norm_b[b] < px:
+            near[n_near] = b
+            n_near += off_line[b] < reach
+        for t in range(n_near):
+            b = near[t]
+            if (off_line[b] / norm_a < px
+                    and abs(xa[a, 0] * lb[b, 0] + xa[a, 1] * lb[b, 1] + lb[b, 2]) / norm_b[b] < px):
                 s = sim[a, b]
                 if s > score_b[a]:
                     score_b[a], best_b[a] = s, b
@@ -456,11 +467,12 @@ def _best_near_lines(sim, la, lb, xa, xb, px):
 
 
 @numba.njit(cache=True, nogil=True, inline="never")
-def _distances_to_line(out, line, norm, x, y):
-    """out[b] = |line . (x[b], y[b], 1)| / norm, a loop on its own that vectorises."""
+def _off_line_into(out, line, x, y):
+    """out[b] = |line . (x[b], y[b], 1)|, the distance to the line times its norm: a loop on its
+    own that vectorises."""
     l0, l1, l2 = line[0], line[1], line[2]
     for b in range(out.shape[0]):
-        out[b] = abs(l0 * x[b] + l1 * y[b] + l2) / norm
+        out[b] = abs(l0 * x[b] + l1 * y[b] + l2)
 
 
 def _triangle_support(n, V, view, rows, cols, mask, at_rows=None, at_cols=None) -> np.ndarray:
