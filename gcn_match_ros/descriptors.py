@@ -9,9 +9,10 @@ from __future__ import annotations
 
 from typing import Tuple
 
+import numba
 import numpy as np
 
-__all__ = ["NORMALIZATIONS", "normalize_descriptors", "cosine_distance", "descriptor_kind", "describe_descriptor_kind"]
+__all__ = ["NORMALIZATIONS", "normalize_descriptors", "cosine_distance", "cosine_distance32", "descriptor_kind", "describe_descriptor_kind"]
 
 NORMALIZATIONS = ("l2", "rootsift")
 
@@ -41,6 +42,14 @@ def cosine_distance(cos):
     """Euclidean distance between unit vectors from their cosine, sqrt(2 - 2 cos): the quantity
     Lowe's ratio is defined on. Shapes: any array (or scalar) -> the same."""
     return np.sqrt(np.maximum(2.0 - 2.0 * cos, 0.0))
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def cosine_distance32(cos):
+    """:func:`cosine_distance` of one float32 in compiled code, in float32 as numpy computes it
+    on float32 arrays (the same bits)."""
+    two = np.float32(2.0)
+    return np.sqrt(max(two - two * cos, np.float32(0.0)))
 
 
 def descriptor_kind(descriptors: np.ndarray) -> Tuple[int, bool]:

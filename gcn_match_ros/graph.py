@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .configs import JsonConfig
-from .descriptors import NORMALIZATIONS
+from .descriptors import NORMALIZATIONS, cosine_distance32
 from .problem import Problem
 from .similarity import DescriptorSimilarity
 
@@ -160,15 +160,15 @@ def _directed_candidates(best, idx, k, row_offset, col_offset, rows, cols, cosin
     """
     n_rows = idx.shape[0]
     kk = min(k, best.shape[1])
-    two, zero, tiny, one = np.float32(2.0), np.float32(0.0), np.float32(1e-12), np.float32(1.0)
+    tiny, one = np.float32(1e-12), np.float32(1.0)
     for r in range(n_rows):
         has_second = best.shape[1] >= 2 and best[r, 1] > -1.0
-        second = np.sqrt(max(two - two * best[r, 1], zero)) if has_second else one
+        second = cosine_distance32(best[r, 1]) if has_second else one
         for c in range(kk):
             value = best[r, c]
             q = one
             if has_second:
-                q = min(np.sqrt(max(two - two * value, zero)) / max(second, tiny), one)
+                q = min(cosine_distance32(value) / max(second, tiny), one)
             rows[at], cols[at] = r + row_offset, idx[r, c] + col_offset
             cosine[at], ratio[at], rank[at] = value, q, c
             at += 1

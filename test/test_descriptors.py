@@ -2,7 +2,10 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.descriptors import describe_descriptor_kind, descriptor_kind, normalize_descriptors
+import numba
+
+from gcn_match_ros.descriptors import (cosine_distance, cosine_distance32, describe_descriptor_kind, descriptor_kind,
+                                       normalize_descriptors)
 
 
 def _random_descriptors(seed=0, n=6, dim=16):
@@ -43,3 +46,19 @@ def test_descriptor_kind_and_its_words():
     assert descriptor_kind(np.zeros((0, 64), np.float32)) == (64, False)  # empty: real-valued
     assert describe_descriptor_kind((256, True)) == "256-bit binary"
     assert describe_descriptor_kind((128, False)) == "128-D real-valued"
+
+
+@numba.njit
+def _compiled_cosine_distances(cos):
+    out = np.empty_like(cos)
+    for m in range(cos.shape[0]):
+        out[m] = cosine_distance32(cos[m])
+    return out
+
+
+def test_compiled_cosine_distance_is_numpys_float32_bit_for_bit():
+    rng = np.random.default_rng(3)
+    cos = np.r_[rng.uniform(-1.0, 1.0, 100_000), 1.0, 1.0 + 1e-6, -1.0, 0.0, 0.999999].astype(np.float32)
+    got = _compiled_cosine_distances(cos)
+    assert got.dtype == np.float32 and got[-3] == 2.0 and got[-4] == 0.0  # cos above 1: clipped to 0
+    np.testing.assert_array_equal(got, cosine_distance(cos))

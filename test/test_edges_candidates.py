@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, CandidateJob, EdgeConfig, _ranks,
-                                            _triangle_support, candidate_edges)
-from gcn_match_ros.descriptors import normalize_descriptors
+from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, CandidateJob, EdgeConfig, _deduplicated,
+                                            _descriptor_features, _ranks, _triangle_support, candidate_edges)
+from gcn_match_ros.descriptors import cosine_distance, normalize_descriptors
+from gcn_match_ros.similarity import most_similar
 
 from conftest import permuted_views_problem
 
@@ -135,6 +136,47 @@ def test_only_trusted_models_give_geometric_features_and_guided_candidates():
     assert g["has_model"].max() == 0.0 and g["guided"].sum() == 0 and np.isinf(strict.res_px).all()
     uncalibrated = candidate_edges(problem, EdgeConfig(essential=False)).models[(0, 1)]
     assert uncalibrated is not None and not uncalibrated.essential
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_deduplicated_candidates_are_the_sorted_unique_pairs_guided_if_any_copy_is(seed):
+    rng = np.random.default_rng(seed)
+    na, nb = 40, 30
+    ea, eb = rng.integers(0, na, 300), rng.integers(0, nb, 300)  # many copies
+    guided = rng.random(300) < 0.3
+    a, b, g = _deduplicated(ea, eb, guided, na, nb)
+    keys, first = np.unique(ea * nb + eb, return_inverse=True)
+    np.testing.assert_array_equal(a * nb + b, keys)
+    np.testing.assert_array_equal(g, np.bincount(first, weights=guided, minlength=keys.size) > 0)
+    empty = _deduplicated(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool), na, nb)
+    assert all(x.size == 0 for x in empty)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_descriptor_features_are_numpys_float32_arithmetic_bit_for_bit(seed):
+    """The compiled features equal the numpy expressions they replaced: ranks from the best
+    lists, Lowe ratios in float32 (cosine distance to the candidate over that to the best other
+    keypoint), mutual and confident flags, all capped."""
+    rng = np.random.default_rng(seed)
+    sim = rng.uniform(-0.2, 1.0, (50, 45)).astype(np.float32)
+    sim[3, 7] = sim[3, 8] = sim[3].max()  # a tie at the top of a row
+    top_r, _, top_c, _ = most_similar(sim, RANK_CAP + 1, RANK_CAP + 1)
+    ea, eb = np.unique(rng.integers(0, 50 * 45, 900)).__divmod__(45)
+    ea = np.r_[ea, 3, 3]; eb = np.r_[eb, 7, 8]
+    got = _descriptor_features(sim, top_r, top_c, ea, eb, 0.8)
+    s = sim[ea, eb]
+    rank_a, rank_b = _ranks(top_r, ea, s), _ranks(top_c, eb, s)
+    rat_a = cosine_distance(s) / np.maximum(np.where(rank_a == 0, cosine_distance(top_r[ea, 1]),
+                                                     cosine_distance(top_r[ea, 0])), 1e-9)
+    rat_b = cosine_distance(s) / np.maximum(np.where(rank_b == 0, cosine_distance(top_c[eb, 1]),
+                                                     cosine_distance(top_c[eb, 0])), 1e-9)
+    mutual = (rank_a == 0) & (rank_b == 0)
+    want = (s, np.minimum(rank_a, RANK_CAP), np.minimum(rank_b, RANK_CAP), np.minimum(rat_a, 1.5),
+            np.minimum(rat_b, 1.5), mutual, mutual & (rat_a < 0.8) & (rat_b < 0.8))
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)
+    assert got[5].any() and got[6].any() and (got[1] == RANK_CAP).any()  # every case occurs
 
 
 def test_epipolar_guided_candidates_follow_the_dense_rule():

@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 import torch
 
 from ..configs import JsonConfig
-from ..descriptors import NORMALIZATIONS, cosine_distance
+from ..descriptors import NORMALIZATIONS, cosine_distance, cosine_distance32
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
@@ -331,23 +331,8 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
         ea = np.concatenate([ea, ga])
         eb = np.concatenate([eb, gb])
         guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
-    # unique candidates, guided if any copy is: a sort puts each key's copies together
-    # (numpy's hash-based np.unique was 3 ms a pair here; its default sort is ~5x faster
-    # than a stable one, and the copies' order does not matter)
-    key = ea * nb + eb
-    order = np.argsort(key)
-    key, guided = key[order], guided[order]
-    first = np.r_[True, key[1:] != key[:-1]]
-    uniq = key[first]
-    g2 = np.logical_or.reduceat(guided, np.flatnonzero(first)) if key.size else np.zeros(0, bool)
-    ea, eb = uniq // nb, uniq % nb
-    s = sim[ea, eb]
-    rank_a = _ranks(top_r, ea, s)  # exact below RANK_CAP, else >= RANK_CAP
-    rank_b = _ranks(top_c, eb, s)
-    rat_a = cosine_distance(s) / np.maximum(np.where(rank_a == 0, cosine_distance(sec_r[ea]), cosine_distance(best_r[ea])), 1e-9)
-    rat_b = cosine_distance(s) / np.maximum(np.where(rank_b == 0, cosine_distance(sec_c[eb]), cosine_distance(best_c[eb])), 1e-9)
-    mutual = (rank_a == 0) & (rank_b == 0)
-    conf = mutual & (rat_a < config.ratio) & (rat_b < config.ratio)
+    ea, eb, guided = _deduplicated(ea, eb, guided, na, nb)
+    s, rank_a, rank_b, rat_a, rat_b, mutual, conf = _descriptor_features(sim, top_r, top_c, ea, eb, config.ratio)
     if model is not None:
         with stage("geometry"):
             rh, rf = residuals(model, xa[ea], xb[eb])
@@ -355,8 +340,89 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
     else:
         rh = rf = np.full(ea.shape[0], np.inf)
         kind = 0.0
-    return PairCandidates(ea, eb, s, np.minimum(rat_a, 1.5), np.minimum(rat_b, 1.5), np.minimum(rank_a, RANK_CAP),
-                          np.minimum(rank_b, RANK_CAP), mutual, conf, rh, rf, kind, g2), model
+    return PairCandidates(ea, eb, s, rat_a, rat_b, rank_a, rank_b, mutual, conf, rh, rf, kind, guided), model
+
+
+@numba.njit(cache=True, nogil=True)
+def _deduplicated(ea, eb, guided, na, nb):
+    """Each candidate (ea[m], eb[m]) once, ordered by (ea, eb), guided if any copy is. A counting
+    sort by ea, then each keypoint's few partners by eb; compiled, with the features below: the
+    numpy steps (a sort of the keys, reduceat, a dozen fancy indexings) were ~0.3 ms a 500 x 500
+    view pair, and held the GIL the solve's other thread needs.
+
+    Shapes: ea, eb (M,) int64 in [0, na) and [0, nb); guided (M,) bool -> ea, eb (U,) int64,
+    guided (U,) bool.
+    """
+    start = np.zeros(na + 1, np.int64)
+    for m in range(ea.shape[0]):
+        start[ea[m] + 1] += 1
+    for a in range(na):
+        start[a + 1] += start[a]
+    fill = start[:-1].copy()
+    partner = np.empty(ea.shape[0], np.int64)
+    flag = np.empty(ea.shape[0], np.bool_)
+    for m in range(ea.shape[0]):
+        at = fill[ea[m]]
+        partner[at], flag[at] = eb[m], guided[m]
+        fill[ea[m]] += 1
+    out_a = np.empty(ea.shape[0], np.int64)
+    out_b = np.empty(ea.shape[0], np.int64)
+    out_guided = np.empty(ea.shape[0], np.bool_)
+    size = 0
+    for a in range(na):
+        lo, hi = start[a], start[a + 1]
+        for t in range(lo + 1, hi):  # insertion sort: a keypoint has ~2 k + a few guided partners
+            b, g = partner[t], flag[t]
+            u = t
+            while u > lo and partner[u - 1] > b:
+                partner[u], flag[u] = partner[u - 1], flag[u - 1]
+                u -= 1
+            partner[u], flag[u] = b, g
+        t = lo
+        while t < hi:
+            out_a[size], out_b[size], out_guided[size] = a, partner[t], flag[t]
+            t += 1
+            while t < hi and partner[t] == partner[t - 1]:
+                out_guided[size] |= flag[t]
+                t += 1
+            size += 1
+    return out_a[:size], out_b[:size], out_guided[:size]
+
+
+@numba.njit(cache=True, nogil=True)
+def _descriptor_features(sim, top_r, top_c, ea, eb, ratio):
+    """The descriptor features of candidates (ea[m], eb[m]): cosine, rank from each side (capped
+    at :data:`RANK_CAP`; exact below it), Lowe ratio from each side (cosine distance to the
+    candidate over that to the best other keypoint, capped at 1.5), mutual nearest neighbours,
+    confident (mutual and both ratios below ``ratio``). float32 arithmetic, as numpy does it on
+    these float32 arrays (:func:`gcn_match_ros.descriptors.cosine_distance`).
+
+    Shapes: sim (na, nb); top_r (na, K), top_c (nb, K) float32 best values of each row and
+    column, K >= 2; ea, eb (M,) int64 -> cosine (M,) float32, rank_a, rank_b (M,) int64,
+    ratio_a, ratio_b (M,) float32, mutual, confident (M,) bool.
+    """
+    n = ea.shape[0]
+    cosine = np.empty(n, np.float32)
+    for m in range(n):
+        cosine[m] = sim[ea[m], eb[m]]
+    rank_a = _ranks(top_r, ea, cosine)
+    rank_b = _ranks(top_c, eb, cosine)
+    ratio_a = np.empty(n, np.float32)
+    ratio_b = np.empty(n, np.float32)
+    mutual = np.empty(n, np.bool_)
+    confident = np.empty(n, np.bool_)
+    tiny, cap = np.float32(1e-9), np.float32(1.5)
+    for m in range(n):
+        d = cosine_distance32(cosine[m])
+        other_a = top_r[ea[m], 1] if rank_a[m] == 0 else top_r[ea[m], 0]
+        other_b = top_c[eb[m], 1] if rank_b[m] == 0 else top_c[eb[m], 0]
+        qa = d / max(cosine_distance32(other_a), tiny)
+        qb = d / max(cosine_distance32(other_b), tiny)
+        mutual[m] = rank_a[m] == 0 and rank_b[m] == 0
+        confident[m] = mutual[m] and qa < ratio and qb < ratio
+        ratio_a[m], ratio_b[m] = min(qa, cap), min(qb, cap)
+        rank_a[m], rank_b[m] = min(rank_a[m], RANK_CAP), min(rank_b[m], RANK_CAP)
+    return cosine, rank_a, rank_b, ratio_a, ratio_b, mutual, confident
 
 
 @numba.njit(cache=True, nogil=True)
