@@ -11,7 +11,8 @@ bootstrap interval of its mean, and how many pairs B won.
 Each solver keeps its own :class:`gcn_match_ros.stream.StreamState` (rig memory, landmarks), as
 the node does, and solves the same synthetic window (``synthetic.rome16k``, SIFT-like, the
 cameras named: ``stage_breakdown.rig_window``) every 100 ms of stream time, as stage_breakdown.py's
-stream rows.
+stream rows; the process keeps freed memory for the next window, as the node and stage_breakdown.py
+do (:func:`gcn_match_ros.allocator.keep_freed_memory`).
 
 Usage::
 
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import solvers
+from gcn_match_ros.allocator import keep_freed_memory
 from gcn_match_ros.experiments import python_speed, results_header, write_results, run_note
 from gcn_match_ros.metrics import paired_bootstrap
 from gcn_match_ros.stream import StreamState, solve_window
@@ -81,6 +83,7 @@ def paired_solves(spec_a: str, spec_b: str, views: int, keypoints: int, pairs: i
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     torch.set_num_threads(args.threads)
+    keep_freed_memory()
     views, keypoints = (int(x) for x in args.config.lower().split("x"))
     speed_before = python_speed()
     t0 = time.monotonic()

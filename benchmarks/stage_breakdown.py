@@ -33,6 +33,10 @@ second thread beside its graph and network (``parallel``, the default; gcn_match
 its stages are then the two threads' times and add up to more than the total, and ``waiting``
 is the time the solve idled for the second thread. ``gcn:parallel=false`` gives the one-thread breakdown.
 
+The process keeps the memory a window frees for the next one, as the node does by default
+(:func:`gcn_match_ros.allocator.keep_freed_memory`; ``--keep-freed-memory false``: glibc's own
+thresholds, under which windows fault the same pages in again).
+
 With ``device=cuda`` the stages run asynchronously on the GPU until a result is copied back, so
 the GPU's time lands in the stage that copies (the edge head); the totals are exact.
 """
@@ -48,6 +52,7 @@ import numpy as np
 import torch
 
 from gcn_match_ros import plots, solvers
+from gcn_match_ros.allocator import keep_freed_memory
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 from gcn_match_ros.experiments import python_speed, results_header, write_results, speed_note
 from gcn_match_ros.stream import StreamState, solve_window
@@ -64,6 +69,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--solvers", nargs="+", default=["nn", "gcn", "gcn:parallel=false"], help="solver specs; the first is the reference")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--keep-freed-memory", choices=("true", "false"), default="true",
+                   help="glibc keeps freed memory for the next window (gcn_match_ros.allocator), as the node "
+                        "does by default (its keep_freed_memory parameter)")
     p.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "stage_breakdown.md")
     p.add_argument("--append", action="store_true")
     return p
@@ -144,6 +152,7 @@ def measure(specs, views: int, keypoints: int, repeats: int) -> list:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     torch.set_num_threads(args.threads)
+    kept = args.keep_freed_memory == "true" and keep_freed_memory()
     speed_before = python_speed()
     rows = []
     for cfg in args.configs:
@@ -185,7 +194,9 @@ def main(argv=None) -> int:
               "same still scene every 100 ms: every landmark continues): 'landmarks' is the time they take "
               "after the solve (the search's chunks still left, the association), outside the total "
               "(issue 13's goal: with / without <= 1.20). "
-              f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
+              + ("Freed memory kept for the next window, as the node keeps it (gcn_match_ros.allocator). " if kept
+                 else "glibc's own malloc thresholds (freed memory given back between windows). ")
+              + f"Figure: {figure.name}. {speed_note(speed_before, python_speed())}\n\n"
             + table + "\n")
     write_results(args.out, text, append=args.append)
     return 0

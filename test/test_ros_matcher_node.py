@@ -312,6 +312,13 @@ def test_matcher_counts_bad_input_and_keeps_running(harness_factory):
     assert h.matcher._worker.is_alive()
 
 
+def test_matcher_reports_whether_freed_memory_is_kept(harness_factory):
+    """keep_freed_memory=false leaves glibc's thresholds alone, and /diagnostics says so (the
+    default, set by the node process, is checked in test_matcher_process_sigterm_clean_exit)."""
+    h = harness_factory(solver="nn", keep_freed_memory=False)
+    h.wait_diag(lambda v: v.get("freed memory") == "given back (off)")
+
+
 def test_matcher_silent_camera_windows_continue(harness_factory):
     h = harness_factory(solver="nn")
     scene = PermutedScene(points=30, dim=64, seed=5)
@@ -525,7 +532,8 @@ def test_matcher_startup_errors_are_clear(params, message):
 
 
 def test_matcher_process_sigterm_clean_exit():
-    """The node process, seen spinning (its /diagnostics arrive here), exits 0 on SIGTERM."""
+    """The node process, seen spinning (its /diagnostics arrive here, saying it keeps freed memory
+    for the next window: parameter keep_freed_memory's default), exits 0 on SIGTERM."""
     ns = f"/t{uuid.uuid4().hex[:10]}"
     env = _node_env()
     proc = subprocess.Popen(_matcher_cmd("solver:=nn", "diagnostics_period:=0.1", ns=ns), env=env,
@@ -534,8 +542,9 @@ def test_matcher_process_sigterm_clean_exit():
         with RosSession("tester", domain_id=int(env["ROS_DOMAIN_ID"])) as session:
             reports = session.collect(DiagnosticArray, "/diagnostics")
             seen = session.spin_until(lambda: proc.poll() is not None or any(
-                diagnostic_values(r, f"{ns}/matcher_node") is not None for r in reports), timeout=60)
-            assert seen and proc.poll() is None, f"no diagnostics from {ns}/matcher_node"
+                (diagnostic_values(r, f"{ns}/matcher_node") or (None, {}))[1].get("freed memory")
+                == "kept for the next window" for r in reports), timeout=60)
+            assert seen and proc.poll() is None, f"no diagnostics (freed memory kept) from {ns}/matcher_node"
             proc.send_signal(signal.SIGTERM)
             rc = proc.wait(timeout=20)
     finally:

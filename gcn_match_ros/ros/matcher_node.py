@@ -53,6 +53,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
 from .. import solvers
+from ..allocator import keep_freed_memory
 from ..bags.codec import frame_from_keypoints_msg
 from ..data import synthetic
 from ..descriptors import describe_descriptor_kind
@@ -75,6 +76,8 @@ _THROTTLE_S = 5.0
 #: /diagnostics' "solve CPUs" without cpu_affinity: the solver keeps its two threads on two CPUs
 #: chosen anew for every window (threads.kept_apart)
 PER_WINDOW = "chosen per window"
+#: /diagnostics' "freed memory": keep_freed_memory set (True), refused (False, not glibc), off (None)
+_FREED_MEMORY = {True: "kept for the next window", False: "given back (not glibc)", None: "given back (off)"}
 
 
 class StartupError(RuntimeError):
@@ -182,6 +185,7 @@ class _Matcher:
 
         t0 = time.perf_counter()
         single_blas_thread()
+        self._freed_memory = _FREED_MEMORY[keep_freed_memory() if p["keep_freed_memory"] else None]
         self._solver = create_solver(p["solver"], p["checkpoint"], device)
         # what the stream learns from earlier windows (the rig's two-view models, the landmarks);
         # the worker thread alone solves, in window order, as gcn_match_ros.stream.solve_stream
@@ -479,7 +483,7 @@ class _Matcher:
             status = self._stats.report(
                 f"{self.get_name()}: matcher", self.get_fully_qualified_name(), self._assembler.drops,
                 self._assembler.descriptor_dim, busy, pending, stale_after=max(2.0 * self._diagnostics_period, 1.0),
-                extra={"solver": self._method, "solve CPUs": self._solve_cpus,
+                extra={"solver": self._method, "solve CPUs": self._solve_cpus, "freed memory": self._freed_memory,
                        "rig models reused": str(self._stream.rig.reused),
                        "rig models fitted": str(self._stream.rig.fitted),
                        "rig models invalidated": str(self._stream.rig.invalidated),

@@ -90,6 +90,10 @@ MATCHER_PARAMETERS: Tuple[ParameterSpec, ...] = (
                                       "each where the kernel would pack the two onto one CPU after a pause "
                                       "between windows.",
                   read_only=True, low=-1, high=4095),
+    ParameterSpec("keep_freed_memory", True, "Keep the memory a window frees for the next one (glibc's malloc "
+                                             "thresholds, for this process): no page faults for the same arrays "
+                                             "window after window; the resident memory stays at its peak.",
+                  read_only=True),
     ParameterSpec("diagnostics_period", 1.0, "Period of /diagnostics reports [s].", read_only=True,
                   low=0.05, high=60.0),
 )
