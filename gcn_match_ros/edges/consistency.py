@@ -286,8 +286,9 @@ class TrackCheck(MergeTest):
     def __new__(cls, geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray) -> "TrackCheck":
         n = geometry.view_index.shape[0]
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        # both orders: a merge looks its member pairs up as they come
-        kept = np.unique(np.concatenate([rows * n + cols, cols * n + rows]))
+        # both orders: a merge looks its member pairs up as they come (a binary search, which a
+        # sort is enough for: numpy's hashing np.unique took 2.5x as long)
+        kept = np.sort(np.concatenate([rows * n + cols, cols * n + rows]))
         pair, pairs = geometry.model_slots
         fwd, bwd, planar, tol = [np.zeros((0, 3))], [np.zeros((0, 3))], [], []
         fwd_start, bwd_start = [], []
