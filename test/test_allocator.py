@@ -32,6 +32,6 @@ def _faults_after_the_first_window(mode: str) -> int:
 
 def test_kept_memory_is_not_faulted_in_again_window_after_window():
     default, kept = _faults_after_the_first_window("default"), _faults_after_the_first_window("keep")
-    # glibc's own thresholds give back most of the 80 MiB after every window: 4 x ~20 000 pages
+    # glibc's own thresholds give about half of the 80 MiB back after every window (~10 000 pages)
     assert default > 20_000
     assert kept < default / 20
