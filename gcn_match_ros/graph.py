@@ -23,6 +23,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
+from .buckets import sort_buckets
 from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS, cosine_distance32
 from .problem import Problem
@@ -206,16 +207,10 @@ def _merged_both_ways(n, rows, cols, cosine, ratio, rank):
     out_ratio = np.empty(2 * m, np.float32)
     out_rank = np.empty(2 * m, np.int64)
     out_count = np.empty(2 * m, np.int64)
+    sort_buckets(start, other, entry)  # by column: a row holds at most 2 k (V - 1) slots
     size = 0
     for v in range(n):
         lo, hi = start[v], start[v + 1]
-        for s in range(lo + 1, hi):  # insertion sort by column: a row holds at most 2 k (V - 1) slots
-            o, e = other[s], entry[s]
-            t = s
-            while t > lo and other[t - 1] > o:
-                other[t], entry[t] = other[t - 1], entry[t - 1]
-                t -= 1
-            other[t], entry[t] = o, e
         s = lo
         while s < hi:
             e = entry[s]

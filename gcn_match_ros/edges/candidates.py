@@ -32,6 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 import torch
 
+from ..buckets import sort_buckets
 from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance, cosine_distance32
 from ..geometry import homogeneous, transfer
@@ -301,8 +302,6 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
     sim = sim_t.numpy()
     k = min(config.k, na, nb)
     top_r, ir, top_c, ic = best
-    best_r, sec_r = top_r[:, 0], top_r[:, 1]
-    best_c, sec_c = top_c[:, 0], top_c[:, 1]
     ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
     eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
     model = None
@@ -368,16 +367,10 @@ def _deduplicated(ea, eb, guided, na, nb):
     out_a = np.empty(ea.shape[0], np.int64)
     out_b = np.empty(ea.shape[0], np.int64)
     out_guided = np.empty(ea.shape[0], np.bool_)
+    sort_buckets(start, partner, flag)  # a keypoint has ~2 k + a few guided partners
     size = 0
     for a in range(na):
         lo, hi = start[a], start[a + 1]
-        for t in range(lo + 1, hi):  # insertion sort: a keypoint has ~2 k + a few guided partners
-            b, g = partner[t], flag[t]
-            u = t
-            while u > lo and partner[u - 1] > b:
-                partner[u], flag[u] = partner[u - 1], flag[u - 1]
-                u -= 1
-            partner[u], flag[u] = b, g
         t = lo
         while t < hi:
             out_a[size], out_b[size], out_guided[size] = a, partner[t], flag[t]

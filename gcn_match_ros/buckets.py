@@ -1,0 +1,29 @@
+"""Compiled sorting of small buckets, shared by the graph's edge merge and the candidate edges.
+
+Both sort entries first by one key with a counting sort (bucket boundaries ``start``), then each
+bucket, a few dozen entries at most, by a second key: :func:`sort_buckets` is that second step.
+"""
+from __future__ import annotations
+
+import numba
+
+__all__ = ["sort_buckets"]
+
+
+@numba.njit(cache=True, nogil=True)
+def sort_buckets(start, keys, carried):
+    """Sort every bucket ``keys[start[v]:start[v + 1]]`` ascending in place, moving ``carried``
+    along: a stable insertion sort (buckets of a few dozen entries; an already sorted one costs
+    one pass).
+
+    Shapes: start (B + 1,) int64 non-decreasing; keys, carried (start[B],), any dtypes.
+    """
+    for v in range(start.shape[0] - 1):
+        lo, hi = start[v], start[v + 1]
+        for t in range(lo + 1, hi):
+            key, value = keys[t], carried[t]
+            u = t
+            while u > lo and keys[u - 1] > key:
+                keys[u], carried[u] = keys[u - 1], carried[u - 1]
+                u -= 1
+            keys[u], carried[u] = key, value
