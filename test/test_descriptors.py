@@ -1,8 +1,7 @@
 """Tests of gcn_match_ros.descriptors: row normalisation (L2, RootSIFT) and the descriptor kind."""
+import numba
 import numpy as np
 import pytest
-
-import numba
 
 from gcn_match_ros.descriptors import (cosine_distance, cosine_distance32, describe_descriptor_kind, descriptor_kind,
                                        normalize_descriptors)

@@ -161,8 +161,8 @@ def test_descriptor_features_are_numpys_float32_arithmetic_bit_for_bit(seed):
     sim = rng.uniform(-0.2, 1.0, (50, 45)).astype(np.float32)
     sim[3, 7] = sim[3, 8] = sim[3].max()  # a tie at the top of a row
     top_r, _, top_c, _ = most_similar(sim, RANK_CAP + 1, RANK_CAP + 1)
-    ea, eb = np.unique(rng.integers(0, 50 * 45, 900)).__divmod__(45)
-    ea = np.r_[ea, 3, 3]; eb = np.r_[eb, 7, 8]
+    ea, eb = np.divmod(np.unique(rng.integers(0, 50 * 45, 900)), 45)
+    ea, eb = np.r_[ea, 3, 3], np.r_[eb, 7, 8]
     got = _descriptor_features(sim, top_r, top_c, ea, eb, 0.8)
     s = sim[ea, eb]
     rank_a, rank_b = _ranks(top_r, ea, s), _ranks(top_c, eb, s)
