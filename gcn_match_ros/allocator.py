@@ -9,7 +9,7 @@ So every window faults the same pages in again (~6 000 page faults an 8 x 500 wi
 share of one of its stages: the graph's edge merge 6.0 -> 3.5 ms without them).
 :func:`keep_freed_memory` fixes both thresholds high: the heap keeps what a window freed for the
 next one, and the process's resident memory stays at its peak instead of going up and down
-with every window (8 x 500 stream windows 2.4-3.9 ms faster, 4-7 ms less CPU a window, in
+with every window (8 x 500 stream windows 2.4-3.8 ms faster, 4.6-7.2 ms less CPU a window, in
 alternating processes: docs/results.md, "Matcher node latency").
 
 A process-wide setting: the node's entry point applies it (parameter ``keep_freed_memory``),
