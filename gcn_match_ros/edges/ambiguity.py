@@ -50,10 +50,11 @@ def check_ratio(ratio: float) -> None:
         raise ValueError(f"epipolar_ratio must be >= 0 (0: off), got {ratio}")
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _band_two_best(F, x_from, x_to, sim, band_px, which):
     """For keypoints ``which`` of one view, their two most similar keypoints of the other view
-    within ``band_px`` of their epipolar line F [x, y, 1].
+    within ``band_px`` of their epipolar line F [x, y, 1]. ``sim`` may be the transpose of a
+    C-contiguous block (it reads a few entries a row: copying the block cost more than the scan).
 
     Shapes: F (3, 3); x_from (n, 2); x_to (m, 2); sim (n, m); which (w,) -> (w,) index of the
     best (-1: none), (w,) its cosine and (w,) the second's (-inf: none).
@@ -103,9 +104,8 @@ def band_runner_up(F: np.ndarray, xa: np.ndarray, xb: np.ndarray, sim: np.ndarra
     ia, ib = np.asarray(ia, np.int64), np.asarray(ib, np.int64)
     scan_a, at_a = np.unique(ia, return_inverse=True)
     scan_b, at_b = np.unique(ib, return_inverse=True)
-    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, np.ascontiguousarray(sim), float(band_px), scan_a)
-    in_a_at, in_a, in_a_second = _band_two_best(np.ascontiguousarray(F.T), xb, xa, np.ascontiguousarray(sim.T),
-                                                float(band_px), scan_b)
+    in_b_at, in_b, in_b_second = _band_two_best(F, xa, xb, sim, float(band_px), scan_a)
+    in_a_at, in_a, in_a_second = _band_two_best(np.ascontiguousarray(F.T), xb, xa, sim.T, float(band_px), scan_b)
     # other keypoints of b on a's line, other keypoints of a on b's line
     from_a = np.where(in_b_at[at_a] == ib, in_b_second[at_a], in_b[at_a])
     from_b = np.where(in_a_at[at_b] == ia, in_a_second[at_b], in_a[at_b])
