@@ -193,3 +193,25 @@ def test_edge_scores_at_inference_equal_the_training_path_across_chunks():
     torch.testing.assert_close(inferred, trained.detach(), rtol=0, atol=1e-6)
     with torch.no_grad():
         assert model.score_edges(E, rows[:0], cols[:0], x[:0]).shape == (0,)
+
+
+def test_compiled_adjacency_is_bit_for_bit_the_torch_ops():
+    """At inference (CPU, float32, no gradient) Â comes from one compiled pass; with a gradient
+    it comes from gcn_norm and a sort: the same tensor, on sorted and unsorted graphs with
+    duplicate edges, self loops and isolated nodes."""
+    rng = np.random.default_rng(0)
+    for trial in range(40):
+        n = int(rng.integers(1, 60))
+        e = int(rng.integers(0, 400))
+        ei = torch.from_numpy(rng.integers(0, n, (2, e)))
+        if trial % 2:  # sorted by (row, col), as build_graph and collate give them
+            ei = ei[:, torch.from_numpy(np.lexsort((ei[1].numpy(), ei[0].numpy())))]
+        ew = torch.from_numpy(rng.random(e).astype(np.float32))
+        fast = normalized_adjacency(ei, ew, n)
+        with torch.enable_grad():
+            slow = normalized_adjacency(ei, ew.clone().requires_grad_(), n)
+        assert torch.equal(fast.crow_indices(), slow.crow_indices())
+        assert torch.equal(fast.col_indices(), slow.col_indices())
+        assert torch.equal(fast.values(), slow.values().detach())
+    with pytest.raises(ValueError, match="node indices"):
+        normalized_adjacency(torch.tensor([[0], [5]]), torch.ones(1), 3)
