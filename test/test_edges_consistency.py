@@ -4,8 +4,8 @@ import numpy as np
 
 from gcn_match_ros.edges.candidates import EdgeConfig
 from gcn_match_ros.edges.consistency import (CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry,
-                                             verified_tracks)
-from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel
+                                             may_keep, unverifiable_views, verified_tracks)
+from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, residuals
 from gcn_match_ros.problem import Problem
 from gcn_match_ros.rounding import greedy_tracks
 
@@ -36,11 +36,21 @@ def test_keep_follows_the_view_pair_status():
     np.testing.assert_array_equal(geometry.agree(rows, cols), [True, False, False, False, True])
     # either order of a pair
     np.testing.assert_array_equal(geometry.keep(cols, rows, scores), geometry.keep(rows, cols, scores))
-    # what keep keeps at some score: pairs of the unverified view pair whatever they are, verified
-    # ones only where they agree
-    np.testing.assert_array_equal(geometry.may_keep(rows, cols), [True, False, True, True, True])
+    # what keep keeps at some score, asked view pair by view pair from the pairs' residuals (as the
+    # candidate edges ask it): pairs of the unverified view pair whatever they are, verified ones
+    # only where they agree
+    view = p.view_index
+    may = np.zeros(5, bool)
+    for m, (r, c) in enumerate(zip(rows, cols)):
+        model = geometry.models.get((view[r], view[c]))
+        res_h, res_f = (residuals(model, p.keypoints[[r]], p.keypoints[[c]]) if model is not None
+                        else (np.full(1, np.inf), np.full(1, np.inf)))
+        may[m] = may_keep(model, bool(geometry.checkable[view[r], view[c]]), res_h, res_f)[0]
+    np.testing.assert_array_equal(may, [True, False, True, True, True])
     for any_scores in (np.zeros(5), np.ones(5), scores):
-        assert not (geometry.keep(rows, cols, any_scores) & ~geometry.may_keep(rows, cols)).any()
+        assert not (geometry.keep(rows, cols, any_scores) & ~may).any()
+    # an unverifiable view pair's pairs whatever their residuals
+    assert may_keep(_shift(10, 5), False, np.full(3, np.inf), np.full(3, np.inf)).all()
 
 
 def test_model_slots_list_the_trusted_view_pairs_in_order():

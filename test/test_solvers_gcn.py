@@ -192,12 +192,11 @@ def test_graph_and_candidate_edges_share_each_view_pairs_best_lists(monkeypatch,
 @pytest.mark.parametrize("spec, kind", [("gcn", "sift"), ("gcn:parallel=false", "binary")])
 def test_pairs_verification_drops_whatever_their_score_are_not_scored(monkeypatch, one_torch_thread, spec, kind):
     """The edge head scores only the candidates that verification may keep
-    (WindowGeometry.may_keep): most of a window's candidates disagree with their view pair's
+    (edges.consistency.may_keep): most of a window's candidates disagree with their view pair's
     trusted model. The published pairs and tracks are those of scoring every candidate (SIFT;
     ORB, whose model also chains models for unverified view pairs)."""
     import gcn_match_ros.solvers.gcn as gcn_module
     from gcn_match_ros.data import synthetic
-    from gcn_match_ros.edges.consistency import WindowGeometry
 
     problem = synthetic.random_scene_problem(synthetic.preset("rome16k", 4, kind), rng=2)
     scored = []
@@ -205,7 +204,7 @@ def test_pairs_verification_drops_whatever_their_score_are_not_scored(monkeypatc
     monkeypatch.setattr(gcn_module, "edge_probabilities",
                         lambda model, emb, es, **kw: scored.append(es.rows.shape[0]) or real(model, emb, es, **kw))
     fewer = solvers.create(spec).solve(problem)
-    monkeypatch.setattr(WindowGeometry, "may_keep", lambda self, rows, cols: np.ones(len(rows), bool))
+    monkeypatch.setattr(gcn_module, "may_keep", lambda model, checkable, res_h, res_f: np.ones(res_h.shape[0], bool))
     every = solvers.create(spec).solve(problem)
     assert scored[0] < 0.5 * scored[1]
     np.testing.assert_array_equal(fewer.track, every.track)

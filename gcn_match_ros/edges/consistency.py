@@ -59,7 +59,7 @@ from .support import unsupported_tracks
 from .verify import (MIN_SEEDS, PairModel, f_residual, h_residual, model_matrices, sampson_error_px,
                      transfer_error_px)
 
-__all__ = ["WindowGeometry", "TrackCheck", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
+__all__ = ["WindowGeometry", "TrackCheck", "may_keep", "unverifiable_views", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
 
 #: The score a pair of an unverified view pair needs to be kept (see the module docstring).
 UNVERIFIED_THRESHOLD = 0.9
@@ -90,7 +90,7 @@ class WindowGeometry:
         self.view_index = problem.view_index
         self.keypoints = problem.keypoints.astype(np.float64)
         self.models = {k: m for k, m in models.items() if m is not None}
-        self.small = problem.view_sizes < MIN_SEEDS
+        self.small = unverifiable_views(problem)
         self.unverified_threshold = float(unverified_threshold)
         #: (V, V) symmetric: the view pair has a trusted model
         self.verified = np.zeros((problem.n_views, problem.n_views), bool)
@@ -254,19 +254,31 @@ class WindowGeometry:
         return np.where(self._in_unverified(rows, cols), np.asarray(scores) >= self.unverified_threshold,
                         self.agree(rows, cols))
 
-    def may_keep(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """(M,) bool: the pairs :meth:`keep` keeps at some score — those of unverified view pairs
-        and those that :meth:`agree`; a pair outside is dropped whatever its score, so a solver
-        need not score it.
-
-        Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
-        """
-        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        return self._in_unverified(rows, cols) | self.agree(rows, cols)
-
     def _in_unverified(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """(M,) bool: the pair's view pair is unverified (:attr:`unverified`)."""
         return self.unverified[self.view_index[rows], self.view_index[cols]]
+
+
+def unverifiable_views(problem: Problem) -> np.ndarray:
+    """(V,) bool: the views with fewer keypoints than a two-view model needs seeds
+    (:data:`.verify.MIN_SEEDS`); every view pair with one is unverifiable (module docstring)."""
+    return problem.view_sizes < MIN_SEEDS
+
+
+def may_keep(model: Optional[PairModel], checkable: bool, res_h: np.ndarray, res_f: np.ndarray) -> np.ndarray:
+    """Which candidate pairs of one view pair :meth:`WindowGeometry.keep` keeps at some score, from
+    their residuals under the view pair's trusted ``model`` (:func:`.verify.residuals`, as the
+    candidate edges compute them): every pair of a view pair that is unverifiable (not
+    ``checkable``: a view with fewer keypoints than a model needs, :attr:`WindowGeometry.checkable`)
+    or unverified (no model: its pairs are kept on their score), else those that agree with the
+    model (:meth:`.verify.PairModel.agreeing`). A pair outside is dropped whatever its score, so a
+    solver need not score it; the candidate edges apply this to each view pair as they find it.
+
+    Shapes: res_h, res_f (M,) -> (M,) bool.
+    """
+    if model is None or not checkable:
+        return np.ones(res_h.shape[0], bool)
+    return model.agreeing(res_h, res_f)
 
 
 class TrackCheck(MergeTest):

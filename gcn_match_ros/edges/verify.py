@@ -180,9 +180,16 @@ class PairModel:
     def agrees(self, xa: np.ndarray, xb: np.ndarray, slack: float = 1.0) -> np.ndarray:
         """(M,) bool: each pair xa[m] <-> xb[m] is an inlier of the selected model: its residual
         within ``slack`` x the model's tolerance (``px`` for H, ``epipolar_px`` for F)."""
-        rh, rf = residuals(self.selected(), xa, xb)
+        return self.agreeing(*residuals(self.selected(), xa, xb), slack)
+
+    def agreeing(self, res_h: np.ndarray, res_f: np.ndarray, slack: float = 1.0) -> np.ndarray:
+        """:meth:`agrees` from the pairs' residuals under this model (:func:`residuals`; of the
+        selected model or of this one, as :meth:`inlier_rule` reads only the selected one's).
+
+        Shapes: res_h, res_f (M,) -> (M,) bool.
+        """
         by_h, tolerance = self.inlier_rule
-        return (rh if by_h else rf) <= slack * tolerance
+        return (res_h if by_h else res_f) <= slack * tolerance
 
     @property
     def inlier_rule(self) -> Tuple[bool, float]:

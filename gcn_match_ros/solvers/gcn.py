@@ -21,8 +21,8 @@ import torch
 
 from ..descriptors import NORMALIZATIONS, describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
-from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig, ViewPair
-from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, verified_tracks
+from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig, PairCandidates, ViewPair
+from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, may_keep, unverifiable_views, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
@@ -342,11 +342,12 @@ class GCNSolver(Solver):
         # it then idles for the pairs the second thread is on.
         # Verification drops the pairs that disagree with their view pair's trusted model
         # whatever their score (80-94 % of the candidates of generated and real windows): they
-        # get no features and are not scored. Every later step reads only pairs it may keep, so
-        # the published pairs and tracks are the same. (Rotation cycles may still drop a model,
+        # get no features and are not scored (consistency.may_keep, view pair by view pair as the
+        # candidate edges find them). Every later step reads only pairs it may keep, so the
+        # published pairs and tracks are the same. (Rotation cycles may still drop a model,
         # which turns its view pair's pairs into scored ones: there every candidate is kept.)
         verify_first = edges is not None and self._verifies(edges) and not self.config.rotation_cycles
-        keep = _MayKeep(functools.partial(self._geometry, problem, edges=edges)) if verify_first else None
+        keep = _may_keep_rule(problem) if verify_first else None
         job = CandidateJob(problem, edges, similarity, rig, keep) if edges is not None else None
         with alongside(_timed_candidates, job, parallel=self.config.parallel and job is not None) as candidates:
             if beside is not None and self.config.parallel:
@@ -376,7 +377,7 @@ class GCNSolver(Solver):
                     es = candidates.result()
                 if job.candidates == 0:
                     return SoftMatches.from_graph(graph, values=graph.weights * 0), None
-                geometry = keep.geometry if keep is not None else self._geometry(problem, es.models, edges)
+                geometry = self._geometry(problem, es.models, edges)
                 with stage("edge_head"):
                     soft = SoftMatches(es.rows, es.cols, edge_probabilities(self.model, torch.from_numpy(emb), es,
                                                                             parallel=self.config.parallel))
@@ -418,18 +419,16 @@ class GCNSolver(Solver):
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
-class _MayKeep:
-    """The candidate edges' ``keep`` rule when the solve verifies: the pairs the window's trusted
-    models may keep (:meth:`WindowGeometry.may_keep`); the geometry it built from the models
-    (``geometry_of(models)``) stays for the verification of the scored pairs."""
+def _may_keep_rule(problem: Problem) -> Callable[[ViewPair, PairCandidates, Optional[PairModel]], np.ndarray]:
+    """The candidate edges' ``keep`` rule when the solve verifies: each view pair's candidates that
+    the window's trusted models may keep (:func:`gcn_match_ros.edges.consistency.may_keep`)."""
+    unverifiable = unverifiable_views(problem)
 
-    def __init__(self, geometry_of: Callable[[Dict[ViewPair, Optional[PairModel]]], WindowGeometry]) -> None:
-        self._geometry_of = geometry_of
-        self.geometry: Optional[WindowGeometry] = None
+    def keep(pair: ViewPair, model: Optional[PairModel], part: PairCandidates) -> np.ndarray:
+        a, b = pair
+        return may_keep(model, not (unverifiable[a] or unverifiable[b]), part.res_h, part.res_f)
 
-    def __call__(self, rows: np.ndarray, cols: np.ndarray, models) -> np.ndarray:
-        self.geometry = self._geometry_of(models)
-        return self.geometry.may_keep(rows, cols)
+    return keep
 
 
 def _timed_candidates(job: CandidateJob):
