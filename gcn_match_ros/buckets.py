@@ -1,6 +1,7 @@
-"""Compiled sorting of small buckets, shared by the graph's edge merge and the candidate edges.
+"""Compiled sorting of small buckets, shared by the graph's edge merge, the candidate edges and the
+network's normalised adjacency.
 
-Both sort entries first by one key with a counting sort (bucket boundaries ``start``), then each
+Each sorts entries first by one key with a counting sort (bucket boundaries ``start``), then each
 bucket, a few dozen entries at most, by a second key: :func:`sort_buckets` is that second step.
 """
 from __future__ import annotations

@@ -51,6 +51,7 @@ def test_keep_follows_the_view_pair_status():
         assert not (geometry.keep(rows, cols, any_scores) & ~may).any()
     # an unverifiable view pair's pairs whatever their residuals
     assert may_keep(_shift(10, 5), False, np.full(3, np.inf), np.full(3, np.inf)).all()
+    assert unverifiable_views(_window(sizes=(20, MIN_SEEDS - 1, 20))).tolist() == [False, True, False]
 
 
 def test_model_slots_list_the_trusted_view_pairs_in_order():

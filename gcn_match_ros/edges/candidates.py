@@ -211,7 +211,7 @@ class CandidateJob:
 
     def __init__(self, problem: Problem, config: EdgeConfig = EdgeConfig(),
                  similarity: Optional[DescriptorSimilarity] = None, rig: Optional[RigMemory] = None,
-                 keep: Optional[Callable[[ViewPair, PairCandidates, Optional[PairModel]], np.ndarray]] = None
+                 keep: Optional[Callable[[ViewPair, Optional[PairModel], PairCandidates], np.ndarray]] = None
                  ) -> None:
         self._problem, self._config, self._rig, self._keep = problem, config, rig, keep
         self.candidates = 0

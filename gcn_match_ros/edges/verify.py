@@ -183,8 +183,8 @@ class PairModel:
         return self.agreeing(*residuals(self.selected(), xa, xb), slack)
 
     def agreeing(self, res_h: np.ndarray, res_f: np.ndarray, slack: float = 1.0) -> np.ndarray:
-        """:meth:`agrees` from the pairs' residuals under this model (:func:`residuals`; of the
-        selected model or of this one, as :meth:`inlier_rule` reads only the selected one's).
+        """:meth:`agrees` from the pairs' residuals (:func:`residuals`) under this model or its
+        selected one: the rule reads only the selected model's residual.
 
         Shapes: res_h, res_f (M,) -> (M,) bool.
         """

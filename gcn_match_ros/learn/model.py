@@ -32,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..buckets import sort_buckets
 from ..configs import JsonConfig
 from ..graph import CorrespondenceGraph, GraphConfig, build_graph
 from ..node_features import FeatureConfig, node_features
@@ -217,14 +218,7 @@ def _normalized_csr(rows, cols, weights, n):
     for i in range(n):
         col[fill[i]] = i
         value[fill[i]] = diag[i] * inv_sqrt[i] * inv_sqrt[i]
-        lo, hi = crow[i], crow[i + 1]
-        for t in range(lo + 1, hi):  # stable insertion sort by column
-            c, v = col[t], value[t]
-            u = t
-            while u > lo and col[u - 1] > c:
-                col[u], value[u] = col[u - 1], value[u - 1]
-                u -= 1
-            col[u], value[u] = c, v
+    sort_buckets(crow, col, value)  # each row by column, stable
     return crow, col, value
 
 

@@ -419,7 +419,7 @@ class GCNSolver(Solver):
         return SoftMatches(soft.rows[keep], soft.cols[keep], soft.scores[keep]), track
 
 
-def _may_keep_rule(problem: Problem) -> Callable[[ViewPair, PairCandidates, Optional[PairModel]], np.ndarray]:
+def _may_keep_rule(problem: Problem) -> Callable[[ViewPair, Optional[PairModel], PairCandidates], np.ndarray]:
     """The candidate edges' ``keep`` rule when the solve verifies: each view pair's candidates that
     the window's trusted models may keep (:func:`gcn_match_ros.edges.consistency.may_keep`)."""
     unverifiable = unverifiable_views(problem)
