@@ -17,7 +17,7 @@ test, a similarity floor, binary weights — select a subset of the same candida
 from __future__ import annotations
 
 import dataclasses
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import numba
 import numpy as np
@@ -263,8 +263,7 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
         at = _directed_candidates(best_r, idx_r, config.k, offs[i], offs[j], rows, cols, cos, rat, rnk, at)
         at = _directed_candidates(best_c, idx_c, config.k, offs[j], offs[i], rows, cols, cos, rat, rnk, at)
     if config.ratio is not None:
-        keep = rat < config.ratio
-        rows, cols, cos, rat, rnk = rows[keep], cols[keep], cos[keep], rat[keep], rnk[keep]
+        rows, cols, cos, rat, rnk = _taken(rat < config.ratio, rows, cols, cos, rat, rnk)
     # every pair in both directions, sorted by (row, col); `count`: how many ends proposed it
     rows, cols, cos, rat, rnk, count = _merged_both_ways(n, rows, cols, cos, rat, rnk)
     if config.rescale == "minmax":
@@ -277,4 +276,17 @@ def build_graph(problem: Problem, config: GraphConfig = GraphConfig(),
         keep &= count >= 2
     if config.binary:
         w = np.ones_like(w)
-    return CorrespondenceGraph(offs.copy(), rows[keep], cols[keep], w[keep], cos[keep], rat[keep], rnk[keep])
+    return CorrespondenceGraph(offs.copy(), *_taken(keep, rows, cols, w, cos, rat, rnk))
+
+
+def _taken(keep: np.ndarray, *columns: np.ndarray) -> Tuple[np.ndarray, ...]:
+    """The entries of ``columns`` where ``keep``: the columns themselves when every entry is kept
+    (the learned graph's, which keeps every merged edge: 6 copies of a 4 x 500 window's 37 k entries
+    took 0.7 ms), else gathered by index (half the time of boolean indexing).
+
+    Shapes: keep (M,) bool, columns (M,) each -> (K,) each.
+    """
+    if keep.all():
+        return columns
+    at = np.flatnonzero(keep)
+    return tuple(column.take(at) for column in columns)

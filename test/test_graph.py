@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gcn_match_ros.descriptors import normalize_descriptors
-from gcn_match_ros.graph import GraphConfig, build_graph
+from gcn_match_ros.graph import GraphConfig, _taken, build_graph
 from gcn_match_ros.problem import Problem
 
 from conftest import permuted_views_problem
@@ -101,3 +101,11 @@ def test_bad_config_is_refused():
         GraphConfig(k=0)
     with pytest.raises(ValueError, match="ratio"):
         GraphConfig(ratio=1.5)
+
+
+def test_taken_keeps_the_columns_themselves_when_everything_is_kept():
+    a, b = np.arange(5), np.arange(5.0) * 2
+    same = _taken(np.ones(5, bool), a, b)
+    assert same[0] is a and same[1] is b
+    sub = _taken(np.array([True, False, True, False, False]), a, b)
+    assert sub[0].tolist() == [0, 2] and sub[1].tolist() == [0.0, 4.0]
