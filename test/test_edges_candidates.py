@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 
 from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, CandidateJob, EdgeConfig, _deduplicated,
-                                            _descriptor_features, _ranks, _triangle_support, candidate_edges)
+                                            _descriptor_features, _pair_block, _pair_candidates, _ranks, _triangle_support,
+                                            candidate_edges, confident_pairs)
+from gcn_match_ros.edges.verify import matrix_residuals
 from gcn_match_ros.descriptors import cosine_distance, normalize_descriptors
 from gcn_match_ros.similarity import most_similar
 
@@ -178,6 +180,86 @@ def test_descriptor_features_are_numpys_float32_arithmetic_bit_for_bit(seed):
         assert g.dtype == w.dtype
         np.testing.assert_array_equal(g, w)
     assert got[5].any() and got[6].any() and (got[1] == RANK_CAP).any()  # every case occurs
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_confident_pairs_are_numpys_float32_arithmetic_bit_for_bit(seed):
+    """The compiled seeds equal the numpy expressions they replaced: mutual nearest neighbours whose
+    float32 Lowe ratios from both sides are below the ratio, compared in float32."""
+    rng = np.random.default_rng(seed)
+    sim = rng.uniform(-0.2, 1.0, (60, 50)).astype(np.float32)
+    top_r, ir, top_c, ic = most_similar(sim, 2, 2)
+    for ratio in (0.8, 0.95, float(np.float32(0.9)) + 1e-12):
+        seeds, partners, mutual = confident_pairs(top_r, ir, top_c, ic, ratio)
+        nn_r = ir[:, 0]
+        want_mutual = ic[nn_r, 0] == np.arange(60)
+        ratio_r = cosine_distance(top_r[:, 0]) / np.maximum(cosine_distance(top_r[:, 1]), 1e-9)
+        ratio_c = cosine_distance(top_c[:, 0]) / np.maximum(cosine_distance(top_c[:, 1]), 1e-9)
+        want = np.flatnonzero(want_mutual & (ratio_r < ratio) & (ratio_c[nn_r] < ratio))
+        np.testing.assert_array_equal(mutual, want_mutual)
+        np.testing.assert_array_equal(seeds, want)
+        np.testing.assert_array_equal(partners, nn_r[want])
+        assert seeds.dtype == partners.dtype == np.int64
+    assert seeds.size and (~mutual).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pair_candidates_are_the_steps_they_fuse(seed):
+    """One view pair's compiled candidates equal its steps one by one: each keypoint's k best in
+    the other view and the guided pairs, deduplicated, their descriptor features and their
+    residuals under H and F (inf where the model has none)."""
+    rng = np.random.default_rng(seed)
+    na, nb, k = 40, 35, 3
+    sim = rng.uniform(-0.2, 1.0, (na, nb)).astype(np.float32)
+    top_r, ir, top_c, ic = most_similar(sim, RANK_CAP + 1, RANK_CAP + 1)
+    xa, xb = rng.uniform(0, 640, (na, 2)), rng.uniform(0, 480, (nb, 2))
+    ga, gb = rng.integers(0, na, 25), rng.integers(0, nb, 25)
+    H = np.eye(3) + rng.normal(0, 1e-3, (3, 3))
+    F = rng.normal(0, 1e-3, (3, 3))
+    ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel(), ga])
+    eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k), gb])
+    guided = np.r_[np.zeros((na + nb) * k, bool), np.ones(25, bool)]
+    want_a, want_b, want_guided = _deduplicated(ea, eb, guided, na, nb)
+    want_features = _descriptor_features(sim, top_r, top_c, want_a, want_b, 0.8)
+    for has_h, has_f in ((True, True), (False, True), (True, False), (False, False)):
+        got = _pair_candidates(sim, top_r, ir, top_c, ic, k, ga, gb, 0.8, xa, xb, H, np.linalg.inv(H), F, has_h, has_f)
+        want_res = matrix_residuals(xa[want_a], xb[want_b], H, np.linalg.inv(H), F, has_h, has_f)
+        for g, w in zip(got, (want_a, want_b, want_guided) + want_features + want_res):
+            assert g.dtype == w.dtype
+            np.testing.assert_array_equal(g, w)
+    assert np.isinf(got[-1]).all() and want_guided.any()
+
+
+def test_a_pair_block_holds_the_kept_candidates_columns_as_numpy_casts_them():
+    """The per-pair columns of the kept candidates' feature rows are numpy's float32 casts of
+    the float64 values (ranks / RANK_CAP, flags, the model kind); the window's columns are left
+    for the assembly; every candidate comes back in global indices."""
+    rng = np.random.default_rng(0)
+    m = 200
+    ea, eb = rng.integers(0, 50, m), rng.integers(0, 40, m)
+    conf, kept, mutual, guided = (rng.random(m) < q for q in (0.2, 0.6, 0.3, 0.1))
+    cosine, ratio_a, ratio_b = (rng.random(m).astype(np.float32) for _ in range(3))
+    rank_a, rank_b = rng.integers(0, RANK_CAP + 1, m), rng.integers(0, RANK_CAP + 1, m)
+    res_h, res_f = rng.exponential(3.0, m), rng.exponential(3.0, m)
+    for kind in (0.0, 1.0, 2.0):
+        rows, cols, conf_all, kept_rows, kept_cols, features, kept_h, kept_f = _pair_block(
+            ea, eb, conf, kept, 100, 300, cosine, ratio_a, ratio_b, rank_a, rank_b, mutual, kind, guided, res_h, res_f)
+        np.testing.assert_array_equal(rows, ea + 100)
+        np.testing.assert_array_equal(cols, eb + 300)
+        np.testing.assert_array_equal(conf_all, conf)
+        np.testing.assert_array_equal(kept_rows, rows[kept])
+        np.testing.assert_array_equal(kept_cols, cols[kept])
+        np.testing.assert_array_equal(kept_h, res_h[kept])
+        np.testing.assert_array_equal(kept_f, res_f[kept])
+        want = {"cosine": cosine, "ratio_a": ratio_a, "ratio_b": ratio_b,
+                "rank_a": rank_a.astype(np.float64) / RANK_CAP, "rank_b": rank_b.astype(np.float64) / RANK_CAP,
+                "mutual": mutual, "confident": conf, "has_model": np.full(m, float(kind > 0)),
+                "planar": np.full(m, float(kind == 2)), "guided": guided}
+        expected = np.zeros((kept.sum(), len(EDGE_FEATURES)), np.float32)
+        for name, column in want.items():
+            expected[:, EDGE_FEATURES.index(name)] = column[kept]
+        assert features.dtype == np.float32
+        np.testing.assert_array_equal(features, expected)
 
 
 def test_epipolar_guided_candidates_follow_the_dense_rule():

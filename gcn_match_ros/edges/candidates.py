@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
 import numba
 import numpy as np
@@ -34,7 +34,7 @@ import torch
 
 from ..buckets import sort_buckets
 from ..configs import JsonConfig
-from ..descriptors import NORMALIZATIONS, cosine_distance, cosine_distance32
+from ..descriptors import NORMALIZATIONS, cosine_distance32
 from ..geometry import homogeneous, transfer
 from ..problem import Problem
 from ..similarity import DescriptorSimilarity
@@ -42,7 +42,7 @@ from ..threads import SharedTasks
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
-                     check_planar_ratio, fit_pair, may_be_trusted, residuals)
+                     check_planar_ratio, f_residual, fit_pair, h_residual, may_be_trusted, model_matrices)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
            "EDGE_FEATURES", "RANK_CAP"]
@@ -231,7 +231,7 @@ class CandidateJob:
         """The window's :class:`EdgeSet` (a pair's error re-raised), helping meanwhile."""
         return self._edges(self._tasks.results())
 
-    def _pair(self, i: int, j: int) -> Tuple[PairCandidates, Optional[PairModel], Optional[np.ndarray]]:
+    def _pair(self, i: int, j: int) -> "_PairBlock":
         problem, offs = self._problem, self._problem.view_offsets
         a0, a1, b0, b1 = int(offs[i]), int(offs[i + 1]), int(offs[j]), int(offs[j + 1])
         intrinsics = (problem.K[i], problem.K[j]) if problem.K is not None else (None, None)
@@ -245,50 +245,102 @@ class CandidateJob:
                                              min(RANK_CAP + 1, sim.shape[0]))
         part, model = _pair_edges(sim, best, self._kp[a0:a1], self._kp[b0:b1], self._config, *intrinsics,
                                   rig=self._rig if use_rig else None, cameras=cameras)
-        return part, model, None if self._keep is None else self._keep((i, j), model, part)
+        kept = np.ones(part.ea.shape[0], bool) if self._keep is None else self._keep((i, j), model, part)
+        return _PairBlock(*_pair_block(part.ea, part.eb, part.confident, kept, a0, b0, part.cosine, part.ratio_a,
+                                       part.ratio_b, part.rank_a, part.rank_b, part.mutual, part.model_kind,
+                                       part.guided, part.res_h, part.res_f), model)
 
-    def _edges(self, done: List[Tuple[PairCandidates, Optional[PairModel], Optional[np.ndarray]]]) -> EdgeSet:
+    def _edges(self, done: List["_PairBlock"]) -> EdgeSet:
         """Every pair's edges (``done``, in the order of the pairs) together, with the features
-        that need all pairs (triangle support)."""
+        that need all pairs (triangle support) and those numpy computes from the residuals."""
         problem = self._problem
-        offs = problem.view_offsets
-        V, n = problem.n_views, problem.n_keypoints
-        parts = [part for part, _, _ in done]
-        starts = [(int(offs[i]), int(offs[j])) for i, j in self._pairs]
-        models: Dict[ViewPair, Optional[PairModel]] = {pair: model for pair, (_, model, _) in zip(self._pairs, done)}
-        self.candidates = sum(len(p.ea) for p in parts)
+        models: Dict[ViewPair, Optional[PairModel]] = {pair: block.model for pair, block in zip(self._pairs, done)}
+        self.candidates = sum(block.rows.shape[0] for block in done)
         if not self.candidates:
             z = np.zeros(0, np.int64)
             return EdgeSet(z, z.copy(), np.zeros((0, len(EDGE_FEATURES)), np.float32), np.zeros(0), np.zeros(0, bool),
                            models)
-        rows = np.concatenate([p.ea + a0 for p, (a0, _) in zip(parts, starts)]).astype(np.int64)
-        colsi = np.concatenate([p.eb + b0 for p, (_, b0) in zip(parts, starts)]).astype(np.int64)
-        conf_all = np.concatenate([p.confident for p in parts])
-        at = None if self._keep is None else np.flatnonzero(np.concatenate([kept for _, _, kept in done]))
-
-        def kept(column: np.ndarray) -> np.ndarray:
-            return column if at is None else column.take(at)
 
         def cat(field: str) -> np.ndarray:
-            return kept(np.concatenate([getattr(p, field) for p in parts]))
+            return np.concatenate([getattr(block, field) for block in done])
 
-        s, ra, rb = cat("cosine"), cat("ratio_a"), cat("ratio_b")
-        rka, rkb = cat("rank_a").astype(np.float64), cat("rank_b").astype(np.float64)
-        mutual, conf = cat("mutual"), kept(conf_all)
-        rh, rf = cat("res_h"), cat("res_f")
-        hasm = kept(np.concatenate([np.full(len(p.ea), p.model_kind) for p in parts]))
-        has, planar = (hasm > 0).astype(np.float64), (hasm == 2).astype(np.float64)
-        guided = cat("guided")
-        view = problem.view_index
-        scored_rows, scored_cols = kept(rows), kept(colsi)
-        tri_all = _triangle_support(n, V, view, rows, colsi, np.ones(rows.shape[0], bool), scored_rows, scored_cols)
-        tri_conf = _triangle_support(n, V, view, rows, colsi, conf_all, scored_rows, scored_cols)
-        rmin = np.minimum(rh, rf)
-        feats = np.empty((scored_rows.shape[0], len(EDGE_FEATURES)), np.float32)  # column by column: no float64 copy
-        for k, column in enumerate([s, ra, rb, rka / RANK_CAP, rkb / RANK_CAP, mutual, conf, tri_all, tri_conf,
-                                    _squash(rmin), np.minimum(rmin, 10.0) / 10.0, has, planar, guided]):
-            feats[:, k] = column
-        return EdgeSet(scored_rows, scored_cols, feats, rmin, conf, models)
+        rows, cols, conf_all = cat("rows"), cat("cols"), cat("confident")
+        scored_rows, scored_cols, feats = cat("kept_rows"), cat("kept_cols"), cat("features")
+        n, V, view = problem.n_keypoints, problem.n_views, problem.view_index
+        feats[:, _TRI_ALL] = _triangle_support(n, V, view, rows, cols, np.ones(rows.shape[0], bool), scored_rows,
+                                               scored_cols)
+        feats[:, _TRI_CONF] = _triangle_support(n, V, view, rows, cols, conf_all, scored_rows, scored_cols)
+        rmin = np.minimum(cat("res_h"), cat("res_f"))
+        feats[:, _RES_LOG] = _squash(rmin)
+        feats[:, _RES_LIN] = np.minimum(rmin, 10.0) / 10.0
+        return EdgeSet(scored_rows, scored_cols, feats, rmin, feats[:, _CONFIDENT] > 0, models)
+
+
+class _PairBlock(NamedTuple):
+    """One view pair's share of the window's edges (:func:`_pair_block`) and its trusted model."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    confident: np.ndarray
+    kept_rows: np.ndarray
+    kept_cols: np.ndarray
+    features: np.ndarray
+    res_h: np.ndarray
+    res_f: np.ndarray
+    model: Optional[PairModel]
+
+
+# The columns of EDGE_FEATURES, by name (constants in the compiled code).
+(_COSINE, _RATIO_A, _RATIO_B, _RANK_A, _RANK_B, _MUTUAL, _CONFIDENT, _TRI_ALL, _TRI_CONF, _RES_LOG, _RES_LIN, _HAS_MODEL,
+ _PLANAR, _GUIDED) = (EDGE_FEATURES.index(name) for name in (
+     "cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident", "tri_all", "tri_conf", "res_log",
+     "res_lin", "has_model", "planar", "guided"))
+_N_FEATURES = len(EDGE_FEATURES)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_block(ea, eb, confident, kept, a0, b0, cosine, ratio_a, ratio_b, rank_a, rank_b, mutual, model_kind, guided,
+                res_h, res_f):
+    """One view pair's candidates as the window's edges take them, on the thread that found them:
+    all of them in global indices with their confident flags (the triangle support counts through
+    every one), and the ``kept`` ones with their :data:`EDGE_FEATURES` rows, the columns of this
+    pair alone filled as numpy fills them (float32 of the float64 rank / RANK_CAP; of the flags),
+    those of the window (triangle support) and of the residuals (:meth:`CandidateJob._edges`) left
+    at 0, and their residuals. Compiled: column by column in numpy (a dozen concatenations, takes
+    and casts of the window's ~10⁵ candidates) the assembly held the GIL that the solver's network
+    on the other thread waits for.
+
+    Shapes: ea, eb (M,) int64 local indices; confident, kept, mutual, guided (M,) bool; cosine,
+    ratio_a, ratio_b (M,) float32; rank_a, rank_b (M,) int64; res_h, res_f (M,) float64 -> rows,
+    cols (M,) int64, confident (M,) bool, kept rows, cols (K,) int64, features (K, F) float32,
+    res_h, res_f (K,) float64.
+    """
+    m = ea.shape[0]
+    rows = ea + a0
+    cols = eb + b0
+    k = 0
+    for e in range(m):
+        k += kept[e]
+    kept_rows = np.empty(k, np.int64)
+    kept_cols = np.empty(k, np.int64)
+    features = np.zeros((k, _N_FEATURES), np.float32)
+    kept_h = np.empty(k, np.float64)
+    kept_f = np.empty(k, np.float64)
+    has, planar = np.float32(model_kind > 0), np.float32(model_kind == 2)
+    t = 0
+    for e in range(m):
+        if not kept[e]:
+            continue
+        kept_rows[t], kept_cols[t] = rows[e], cols[e]
+        row = features[t]
+        row[_COSINE], row[_RATIO_A], row[_RATIO_B] = cosine[e], ratio_a[e], ratio_b[e]
+        row[_RANK_A] = np.float32(np.float64(rank_a[e]) / RANK_CAP)
+        row[_RANK_B] = np.float32(np.float64(rank_b[e]) / RANK_CAP)
+        row[_MUTUAL], row[_CONFIDENT] = np.float32(mutual[e]), np.float32(confident[e])
+        row[_HAS_MODEL], row[_PLANAR], row[_GUIDED] = has, planar, np.float32(guided[e])
+        kept_h[t], kept_f[t] = res_h[e], res_f[e]
+        t += 1
+    return rows, cols, confident, kept_rows, kept_cols, features, kept_h, kept_f
 
 
 def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
@@ -303,10 +355,7 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
     remembered models, consulted for ``cameras`` (both or neither)."""
     na, nb = sim_t.shape
     sim = sim_t.numpy()
-    k = min(config.k, na, nb)
     top_r, ir, top_c, ic = best
-    ea = np.concatenate([np.repeat(np.arange(na), k), ic[:, :k].ravel()])
-    eb = np.concatenate([ir[:, :k].ravel(), np.repeat(np.arange(nb), k)])
     model = None
     if config.geometry:
         seed_a, seed_b, mutual_ab = confident_pairs(top_r, ir, top_c, ic, config.ratio)
@@ -326,23 +375,65 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
                                   may_fit=lambda: config.may_fit(sa, sb))
             else:
                 model = config.trusted(fit())
-    guided = np.zeros(ea.shape[0], bool)
+    ga = gb = _NONE_GUIDED
     if config.guided and model is not None:
         with stage("geometry"):
             ga, gb = _guided(sim, xa, xb, model, config.guide_px)
-        ea = np.concatenate([ea, ga])
-        eb = np.concatenate([eb, gb])
-        guided = np.concatenate([guided, np.ones(ga.shape[0], bool)])
-    ea, eb, guided = _deduplicated(ea, eb, guided, na, nb)
-    s, rank_a, rank_b, rat_a, rat_b, mutual, conf = _descriptor_features(sim, top_r, top_c, ea, eb, config.ratio)
-    if model is not None:
-        with stage("geometry"):
-            rh, rf = residuals(model, xa[ea], xb[eb])
-        kind = 2.0 if model.planar else 1.0
-    else:
-        rh = rf = np.full(ea.shape[0], np.inf)
-        kind = 0.0
+    H, Hi, F, has_h, has_f = _NO_MODEL if model is None else model_matrices(model)
+    ea, eb, guided, s, rank_a, rank_b, rat_a, rat_b, mutual, conf, rh, rf = _pair_candidates(
+        sim, top_r, ir, top_c, ic, min(config.k, na, nb), ga, gb, float(config.ratio), xa, xb, H, Hi, F, has_h, has_f)
+    kind = 0.0 if model is None else 2.0 if model.planar else 1.0
     return PairCandidates(ea, eb, s, rat_a, rat_b, rank_a, rank_b, mutual, conf, rh, rf, kind, guided), model
+
+
+_NONE_GUIDED = np.zeros(0, np.int64)
+#: :func:`_pair_candidates`' model arguments for a view pair without a trusted model.
+_NO_MODEL = (np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), False, False)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_candidates(sim, top_r, ir, top_c, ic, k, ga, gb, ratio, xa, xb, H, Hi, F, has_h, has_f):
+    """One view pair's candidates and per-pair features, one compiled call after its fit: each
+    keypoint's ``k`` best in the other view and the guided pairs (ga[g], gb[g]), each pair once
+    (:func:`_deduplicated`), their descriptor features (:func:`_descriptor_features`) and their
+    residuals under H and F where the model has them (inf elsewhere; the formulas of
+    :func:`.verify.residuals`). One call instead of a dozen numpy steps, which held the GIL that
+    the solver's network on the other thread waits for at each of its operations.
+
+    Shapes: sim (na, nb) float32; top_r, ir (na, K), top_c, ic (nb, K) best lists, K >= max(k, 2);
+    ga, gb (G,) int64; xa (na, 2), xb (nb, 2) float64; H, Hi, F (3, 3) float64 -> ea, eb (M,) int64,
+    guided (M,) bool, then the fields of :class:`PairCandidates` from cosine to res_f, in that order.
+    """
+    na, nb = sim.shape
+    total = (na + nb) * k + ga.shape[0]
+    ea = np.empty(total, np.int64)
+    eb = np.empty(total, np.int64)
+    guided = np.zeros(total, np.bool_)
+    m = 0
+    for a in range(na):
+        for r in range(k):
+            ea[m], eb[m] = a, ir[a, r]
+            m += 1
+    for b in range(nb):
+        for r in range(k):
+            ea[m], eb[m] = ic[b, r], b
+            m += 1
+    for g in range(ga.shape[0]):
+        ea[m], eb[m], guided[m] = ga[g], gb[g], True
+        m += 1
+    ea, eb, guided = _deduplicated(ea, eb, guided, na, nb)
+    cosine, rank_a, rank_b, ratio_a, ratio_b, mutual, confident = _descriptor_features(sim, top_r, top_c, ea, eb,
+                                                                                       ratio)
+    rh = np.full(ea.shape[0], np.inf)
+    rf = np.full(ea.shape[0], np.inf)
+    if has_h or has_f:
+        for m in range(ea.shape[0]):
+            x, y, u, v = xa[ea[m], 0], xa[ea[m], 1], xb[eb[m], 0], xb[eb[m], 1]
+            if has_h:
+                rh[m] = h_residual(x, y, u, v, H, Hi)
+            if has_f:
+                rf[m] = f_residual(x, y, u, v, F)
+    return ea, eb, guided, cosine, rank_a, rank_b, ratio_a, ratio_b, mutual, confident, rh, rf
 
 
 @numba.njit(cache=True, nogil=True)
@@ -448,12 +539,35 @@ def confident_pairs(top_r: np.ndarray, ir: np.ndarray, top_c: np.ndarray, ic: np
         keypoints of a, their partners in b (C,) int64, and whether each keypoint of a is its
         nearest neighbour's nearest neighbour (n_a,) bool.
     """
-    nn_r, nn_c = ir[:, 0], ic[:, 0]
-    mutual = nn_c[nn_r] == np.arange(ir.shape[0])
-    ratio_r = cosine_distance(top_r[:, 0]) / np.maximum(cosine_distance(top_r[:, 1]), 1e-9)
-    ratio_c = cosine_distance(top_c[:, 0]) / np.maximum(cosine_distance(top_c[:, 1]), 1e-9)
-    conf_a = np.flatnonzero(mutual & (ratio_r < ratio) & (ratio_c[nn_r] < ratio))
-    return conf_a, nn_r[conf_a], mutual
+    return _confident_pairs(np.asarray(top_r, np.float32), np.asarray(ir, np.int64),
+                            np.asarray(top_c, np.float32), np.asarray(ic, np.int64), float(ratio))
+
+
+@numba.njit(cache=True, nogil=True)
+def _confident_pairs(top_r, ir, top_c, ic, ratio):
+    """:func:`confident_pairs`, compiled (a dozen numpy steps a view pair before): the ratios in
+    float32 and compared with ``ratio`` in float32, as numpy computes them on these float32 lists
+    (:func:`gcn_match_ros.descriptors.cosine_distance`)."""
+    na, nb = ir.shape[0], ic.shape[0]
+    tiny, limit = np.float32(1e-9), np.float32(ratio)
+    passes_c = np.empty(nb, np.bool_)
+    for b in range(nb):
+        passes_c[b] = cosine_distance32(top_c[b, 0]) / max(cosine_distance32(top_c[b, 1]), tiny) < limit
+    mutual = np.empty(na, np.bool_)
+    seeds = np.empty(na, np.int64)
+    n = 0
+    for a in range(na):
+        nn = ir[a, 0]
+        mutual[a] = ic[nn, 0] == a
+        passes_r = cosine_distance32(top_r[a, 0]) / max(cosine_distance32(top_r[a, 1]), tiny) < limit
+        if mutual[a] and passes_r and passes_c[nn]:
+            seeds[n] = a
+            n += 1
+    seeds = seeds[:n].copy()
+    partners = np.empty(n, np.int64)
+    for t in range(n):
+        partners[t] = ir[seeds[t], 0]
+    return seeds, partners, mutual
 
 
 def _guided(sim: np.ndarray, xa: np.ndarray, xb: np.ndarray, model: PairModel, px: float):
