@@ -3,12 +3,35 @@ network's normalised adjacency.
 
 Each sorts entries first by one key with a counting sort (bucket boundaries ``start``), then each
 bucket, a few dozen entries at most, by a second key: :func:`sort_buckets` is that second step.
+:func:`bucket_order` is the first step where only the order is needed.
 """
 from __future__ import annotations
 
 import numba
+import numpy as np
 
-__all__ = ["sort_buckets"]
+__all__ = ["bucket_order", "sort_buckets"]
+
+
+@numba.njit(cache=True, nogil=True)
+def bucket_order(keys, n_buckets):
+    """The positions of ``keys`` grouped by key, ascending, each key's in their order (a stable
+    counting sort), and the buckets' boundaries.
+
+    Shapes: keys (M,) int64 in [0, n_buckets) -> start (n_buckets + 1,) int64, order (M,) int64:
+    ``keys[order[start[v]:start[v + 1]]] == v``.
+    """
+    start = np.zeros(n_buckets + 1, np.int64)
+    for m in range(keys.shape[0]):
+        start[keys[m] + 1] += 1
+    for v in range(n_buckets):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    order = np.empty(keys.shape[0], np.int64)
+    for m in range(keys.shape[0]):
+        order[fill[keys[m]]] = m
+        fill[keys[m]] += 1
+    return start, order
 
 
 @numba.njit(cache=True, nogil=True)

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 import torch
 
-from ..buckets import sort_buckets
+from ..buckets import bucket_order, sort_buckets
 from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance32
 from ..geometry import homogeneous, transfer
@@ -267,9 +267,10 @@ class CandidateJob:
         rows, cols, conf_all = cat("rows"), cat("cols"), cat("confident")
         scored_rows, scored_cols, feats = cat("kept_rows"), cat("kept_cols"), cat("features")
         n, V, view = problem.n_keypoints, problem.n_views, problem.view_index
+        by_row = bucket_order(scored_rows, n)[1]
         feats[:, _TRI_ALL] = _triangle_support(n, V, view, rows, cols, np.ones(rows.shape[0], bool), scored_rows,
-                                               scored_cols)
-        feats[:, _TRI_CONF] = _triangle_support(n, V, view, rows, cols, conf_all, scored_rows, scored_cols)
+                                               scored_cols, by_row)
+        feats[:, _TRI_CONF] = _triangle_support(n, V, view, rows, cols, conf_all, scored_rows, scored_cols, by_row)
         rmin = np.minimum(cat("res_h"), cat("res_f"))
         feats[:, _RES_LOG] = _squash(rmin)
         feats[:, _RES_LIN] = np.minimum(rmin, 10.0) / 10.0
@@ -651,19 +652,23 @@ def _off_line_into(out, line, x, y):
         out[b] = abs(l0 * x[b] + l1 * y[b] + l2)
 
 
-def _triangle_support(n, V, view, rows, cols, mask, at_rows=None, at_cols=None) -> np.ndarray:
+def _triangle_support(n, V, view, rows, cols, mask, at_rows=None, at_cols=None, by_row=None) -> np.ndarray:
     """Fraction of third views closing a triangle through ``mask`` edges with each edge of
-    (``at_rows``, ``at_cols``); by default the edges (``rows``, ``cols``) themselves.
+    (``at_rows``, ``at_cols``); by default the edges (``rows``, ``cols``) themselves. ``by_row``:
+    the positions of those edges grouped by row (:func:`gcn_match_ros.buckets.bucket_order`),
+    when the caller has them.
 
-    Shapes: view (n,); rows, cols, mask (M,); at_rows, at_cols (K,) -> (K,) float64.
+    Shapes: view (n,); rows, cols, mask (M,); at_rows, at_cols, by_row (K,) -> (K,) float64.
     """
     if at_rows is None:
         at_rows, at_cols = rows, cols
     if V < 3:
         return np.zeros(at_rows.shape[0])
+    at_rows, at_cols = np.asarray(at_rows, np.int64), np.asarray(at_cols, np.int64)
+    if by_row is None:
+        by_row = bucket_order(at_rows, n)[1]
     indptr, indices = _neighbour_lists(n, np.asarray(rows[mask], np.int64), np.asarray(cols[mask], np.int64))
-    views_seen = _common_neighbour_views(indptr, indices, np.asarray(view, np.int64), np.asarray(at_rows, np.int64),
-                                         np.asarray(at_cols, np.int64), V)
+    views_seen = _common_neighbour_views(indptr, indices, np.asarray(view, np.int64), at_rows, at_cols, by_row, V)
     return views_seen / (V - 2)
 
 
@@ -689,15 +694,21 @@ def _neighbour_lists(n, r, c):
 
 
 @numba.njit(cache=True, nogil=True)
-def _common_neighbour_views(indptr, indices, view, rows, cols, V):
+def _common_neighbour_views(indptr, indices, view, rows, cols, by_row, V):
     """Per edge (rows[m], cols[m]) the number of distinct views among the two keypoints' common
     neighbours in the CSR graph (indptr, indices); edges join different views, so each common
-    neighbour lies in a third view. Compiled: ~10⁵ edges a window, dozens of neighbours each."""
+    neighbour lies in a third view. Compiled: ~10⁵ edges a window, dozens of neighbours each. The
+    edges are visited grouped by row (``by_row``), so each keypoint's neighbours are marked once
+    (in the window's order, view pair by view pair, a keypoint's row came back once per view
+    pair: 8 x 500, 18 k edges, 2.8 -> 2.3 ms).
+
+    Shapes: rows, cols, by_row (K,) int64 -> (K,) int64.
+    """
     out = np.zeros(rows.shape[0], np.int64)
     marked = np.full(indptr.shape[0] - 1, -1, np.int64)  # marked[c] == a: c neighbours a
     counted = np.full(V, -1, np.int64)                   # counted[k] == m: view k counted for m
-    current = -1  # the keypoint whose neighbours are marked (edges come grouped by row)
-    for m in range(rows.shape[0]):
+    current = -1  # the keypoint whose neighbours are marked
+    for m in by_row:
         a, b = rows[m], cols[m]
         if a != current:
             for p in range(indptr[a], indptr[a + 1]):
