@@ -307,9 +307,9 @@ def _pair_block(ea, eb, confident, kept, a0, b0, cosine, ratio_a, ratio_b, rank_
     every one), and the ``kept`` ones with their :data:`EDGE_FEATURES` rows, the columns of this
     pair alone filled as numpy fills them (float32 of the float64 rank / RANK_CAP; of the flags),
     those of the window (triangle support) and of the residuals (:meth:`CandidateJob._edges`) left
-    at 0, and their residuals. Compiled: column by column in numpy (a dozen concatenations, takes
-    and casts of the window's ~10⁵ candidates) the assembly held the GIL that the solver's network
-    on the other thread waits for.
+    at 0, and their residuals. Compiled, on the pair's thread: the assembly's numpy passes over the
+    window's ~10⁵ candidates, column by column (a dozen concatenations, takes and casts), held the
+    GIL that the solver's network on the other thread waits for.
 
     Shapes: ea, eb (M,) int64 local indices; confident, kept, mutual, guided (M,) bool; cosine,
     ratio_a, ratio_b (M,) float32; rank_a, rank_b (M,) int64; res_h, res_f (M,) float64 -> rows,
@@ -455,7 +455,7 @@ def _deduplicated(ea, eb, guided, na, nb):
     fill = start[:-1].copy()
     partner = np.empty(ea.shape[0], np.int64)
     flag = np.empty(ea.shape[0], np.bool_)
-    for m in range(ea.shape[0]):
+    for m in range(ea.shape[0]):  # bucket_order's counting sort, scattering the payload itself (a third faster)
         at = fill[ea[m]]
         partner[at], flag[at] = eb[m], guided[m]
         fill[ea[m]] += 1
