@@ -3,29 +3,42 @@ network's normalised adjacency.
 
 Each sorts entries first by one key with a counting sort (bucket boundaries ``start``), then each
 bucket, a few dozen entries at most, by a second key: :func:`sort_buckets` is that second step.
-:func:`bucket_order` is the first step where only the order is needed.
+:func:`bucket_starts` is the first step's boundaries, :func:`bucket_order` the first step where only
+the order is needed.
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-__all__ = ["bucket_order", "sort_buckets"]
+__all__ = ["bucket_starts", "bucket_order", "sort_buckets"]
 
 
 @numba.njit(cache=True, nogil=True)
-def bucket_order(keys, n_buckets):
-    """The positions of ``keys`` grouped by key, ascending, each key's in their order (a stable
-    counting sort), and the buckets' boundaries.
+def bucket_starts(keys, n_buckets):
+    """The boundaries of the buckets a counting sort by ``keys`` fills: bucket v holds positions
+    ``start[v]:start[v + 1]``. A caller that scatters its own payload fills them itself (from a copy
+    of ``start[:-1]``): a third faster than gathering by :func:`bucket_order`'s order.
 
-    Shapes: keys (M,) int64 in [0, n_buckets) -> start (n_buckets + 1,) int64, order (M,) int64:
-    ``keys[order[start[v]:start[v + 1]]] == v``.
+    Shapes: keys (M,) int64 in [0, n_buckets) -> start (n_buckets + 1,) int64.
     """
     start = np.zeros(n_buckets + 1, np.int64)
     for m in range(keys.shape[0]):
         start[keys[m] + 1] += 1
     for v in range(n_buckets):
         start[v + 1] += start[v]
+    return start
+
+
+@numba.njit(cache=True, nogil=True)
+def bucket_order(keys, n_buckets):
+    """The positions of ``keys`` grouped by key, ascending, each key's in their order (a stable
+    counting sort), and the buckets' boundaries (:func:`bucket_starts`).
+
+    Shapes: keys (M,) int64 in [0, n_buckets) -> start (n_buckets + 1,) int64, order (M,) int64:
+    ``keys[order[start[v]:start[v + 1]]] == v``.
+    """
+    start = bucket_starts(keys, n_buckets)
     fill = start[:-1].copy()
     order = np.empty(keys.shape[0], np.int64)
     for m in range(keys.shape[0]):

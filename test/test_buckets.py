@@ -2,7 +2,7 @@
 counting sort's order."""
 import numpy as np
 
-from gcn_match_ros.buckets import bucket_order, sort_buckets
+from gcn_match_ros.buckets import bucket_order, bucket_starts, sort_buckets
 
 
 def test_every_bucket_is_sorted_stably_with_what_it_carries():
@@ -27,5 +27,6 @@ def test_bucket_order_is_a_stable_sort_by_key_with_the_boundaries():
     start, order = bucket_order(keys, 9)  # and two empty ones at the end
     np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
     np.testing.assert_array_equal(start, np.r_[0, np.cumsum(np.bincount(keys, minlength=9))])
+    np.testing.assert_array_equal(bucket_starts(keys, 9), start)
     start, order = bucket_order(np.zeros(0, np.int64), 3)
     assert order.size == 0 and np.all(start == 0)

@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 import torch
 
-from ..buckets import bucket_order, sort_buckets
+from ..buckets import bucket_order, bucket_starts, sort_buckets
 from ..configs import JsonConfig
 from ..descriptors import NORMALIZATIONS, cosine_distance32
 from ..geometry import homogeneous, transfer
@@ -447,15 +447,11 @@ def _deduplicated(ea, eb, guided, na, nb):
     Shapes: ea, eb (M,) int64 in [0, na) and [0, nb); guided (M,) bool -> ea, eb (U,) int64,
     guided (U,) bool.
     """
-    start = np.zeros(na + 1, np.int64)
-    for m in range(ea.shape[0]):
-        start[ea[m] + 1] += 1
-    for a in range(na):
-        start[a + 1] += start[a]
+    start = bucket_starts(ea, na)
     fill = start[:-1].copy()
     partner = np.empty(ea.shape[0], np.int64)
     flag = np.empty(ea.shape[0], np.bool_)
-    for m in range(ea.shape[0]):  # bucket_order's counting sort, scattering the payload itself (a third faster)
+    for m in range(ea.shape[0]):
         at = fill[ea[m]]
         partner[at], flag[at] = eb[m], guided[m]
         fill[ea[m]] += 1

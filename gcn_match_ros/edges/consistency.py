@@ -59,7 +59,8 @@ from .support import unsupported_tracks
 from .verify import (MIN_SEEDS, PairModel, f_residual, h_residual, model_matrices, sampson_error_px,
                      transfer_error_px)
 
-__all__ = ["WindowGeometry", "TrackCheck", "may_keep", "unverifiable_views", "verified_tracks", "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
+__all__ = ["WindowGeometry", "TrackCheck", "may_keep", "unverifiable_views", "verified_tracks", "UNVERIFIED_THRESHOLD",
+           "CHAIN_SLACK", "MIN_WITNESSES"]
 
 #: The score a pair of an unverified view pair needs to be kept (see the module docstring).
 UNVERIFIED_THRESHOLD = 0.9
