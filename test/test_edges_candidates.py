@@ -242,15 +242,14 @@ def test_a_pair_block_holds_the_kept_candidates_columns_as_numpy_casts_them():
     rank_a, rank_b = rng.integers(0, RANK_CAP + 1, m), rng.integers(0, RANK_CAP + 1, m)
     res_h, res_f = rng.exponential(3.0, m), rng.exponential(3.0, m)
     for kind in (0.0, 1.0, 2.0):
-        rows, cols, conf_all, kept_rows, kept_cols, features, kept_h, kept_f = _pair_block(
+        rows, cols, conf_all, kept_rows, kept_cols, features, res_px = _pair_block(
             ea, eb, conf, kept, 100, 300, cosine, ratio_a, ratio_b, rank_a, rank_b, mutual, kind, guided, res_h, res_f)
         np.testing.assert_array_equal(rows, ea + 100)
         np.testing.assert_array_equal(cols, eb + 300)
         np.testing.assert_array_equal(conf_all, conf)
         np.testing.assert_array_equal(kept_rows, rows[kept])
         np.testing.assert_array_equal(kept_cols, cols[kept])
-        np.testing.assert_array_equal(kept_h, res_h[kept])
-        np.testing.assert_array_equal(kept_f, res_f[kept])
+        np.testing.assert_array_equal(res_px, np.minimum(res_h, res_f)[kept])
         want = {"cosine": cosine, "ratio_a": ratio_a, "ratio_b": ratio_b,
                 "rank_a": rank_a.astype(np.float64) / RANK_CAP, "rank_b": rank_b.astype(np.float64) / RANK_CAP,
                 "mutual": mutual, "confident": conf, "has_model": np.full(m, float(kind > 0)),

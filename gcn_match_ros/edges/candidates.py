@@ -271,7 +271,7 @@ class CandidateJob:
         feats[:, _TRI_ALL] = _triangle_support(n, V, view, rows, cols, np.ones(rows.shape[0], bool), scored_rows,
                                                scored_cols, by_row)
         feats[:, _TRI_CONF] = _triangle_support(n, V, view, rows, cols, conf_all, scored_rows, scored_cols, by_row)
-        rmin = np.minimum(cat("res_h"), cat("res_f"))
+        rmin = cat("res_px")
         feats[:, _RES_LOG] = _squash(rmin)
         feats[:, _RES_LIN] = np.minimum(rmin, 10.0) / 10.0
         return EdgeSet(scored_rows, scored_cols, feats, rmin, feats[:, _CONFIDENT] > 0, models)
@@ -286,8 +286,7 @@ class _PairBlock(NamedTuple):
     kept_rows: np.ndarray
     kept_cols: np.ndarray
     features: np.ndarray
-    res_h: np.ndarray
-    res_f: np.ndarray
+    res_px: np.ndarray
     model: Optional[PairModel]
 
 
@@ -307,14 +306,15 @@ def _pair_block(ea, eb, confident, kept, a0, b0, cosine, ratio_a, ratio_b, rank_
     every one), and the ``kept`` ones with their :data:`EDGE_FEATURES` rows, the columns of this
     pair alone filled as numpy fills them (float32 of the float64 rank / RANK_CAP; of the flags),
     those of the window (triangle support) and of the residuals (:meth:`CandidateJob._edges`) left
-    at 0, and their residuals. Compiled, on the pair's thread: the assembly's numpy passes over the
-    window's ~10⁵ candidates, column by column (a dozen concatenations, takes and casts), held the
-    GIL that the solver's network on the other thread waits for.
+    at 0, and their residuals (the smaller of H's and F's, :attr:`EdgeSet.res_px`). Compiled, on the
+    pair's thread: the assembly's numpy passes over the window's ~10⁵ candidates, column by column (a
+    dozen concatenations, takes and casts), held the GIL that the solver's network on the other
+    thread waits for.
 
     Shapes: ea, eb (M,) int64 local indices; confident, kept, mutual, guided (M,) bool; cosine,
     ratio_a, ratio_b (M,) float32; rank_a, rank_b (M,) int64; res_h, res_f (M,) float64 -> rows,
     cols (M,) int64, confident (M,) bool, kept rows, cols (K,) int64, features (K, F) float32,
-    res_h, res_f (K,) float64.
+    res_px (K,) float64.
     """
     m = ea.shape[0]
     rows = ea + a0
@@ -325,8 +325,7 @@ def _pair_block(ea, eb, confident, kept, a0, b0, cosine, ratio_a, ratio_b, rank_
     kept_rows = np.empty(k, np.int64)
     kept_cols = np.empty(k, np.int64)
     features = np.zeros((k, _N_FEATURES), np.float32)
-    kept_h = np.empty(k, np.float64)
-    kept_f = np.empty(k, np.float64)
+    res_px = np.empty(k, np.float64)
     has, planar = np.float32(model_kind > 0), np.float32(model_kind == 2)
     t = 0
     for e in range(m):
@@ -339,9 +338,9 @@ def _pair_block(ea, eb, confident, kept, a0, b0, cosine, ratio_a, ratio_b, rank_
         row[_RANK_B] = np.float32(np.float64(rank_b[e]) / RANK_CAP)
         row[_MUTUAL], row[_CONFIDENT] = np.float32(mutual[e]), np.float32(confident[e])
         row[_HAS_MODEL], row[_PLANAR], row[_GUIDED] = has, planar, np.float32(guided[e])
-        kept_h[t], kept_f[t] = res_h[e], res_f[e]
+        res_px[t] = np.minimum(res_h[e], res_f[e])
         t += 1
-    return rows, cols, confident, kept_rows, kept_cols, features, kept_h, kept_f
+    return rows, cols, confident, kept_rows, kept_cols, features, res_px
 
 
 def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
