@@ -4,7 +4,8 @@ import numpy as np
 
 from gcn_match_ros.edges.candidates import EdgeConfig
 from gcn_match_ros.edges.consistency import (CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry,
-                                             may_keep, unverifiable_views, verified_tracks)
+                                             checkable_view_pairs, may_keep, unverifiable_views,
+                                             verified_tracks)
 from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, residuals
 from gcn_match_ros.problem import Problem
 from gcn_match_ros.rounding import greedy_tracks
@@ -52,6 +53,8 @@ def test_keep_follows_the_view_pair_status():
     # an unverifiable view pair's pairs whatever their residuals
     assert may_keep(_shift(10, 5), False, np.full(3, np.inf), np.full(3, np.inf)).all()
     assert unverifiable_views(_window(sizes=(20, MIN_SEEDS - 1, 20))).tolist() == [False, True, False]
+    assert checkable_view_pairs(_window(sizes=(20, MIN_SEEDS - 1, 20))).tolist() == [
+        [True, False, True], [False, False, False], [True, False, True]]
 
 
 def test_model_slots_list_the_trusted_view_pairs_in_order():

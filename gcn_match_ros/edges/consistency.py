@@ -59,8 +59,8 @@ from .support import unsupported_tracks
 from .verify import (MIN_SEEDS, PairModel, f_residual, h_residual, model_matrices, sampson_error_px,
                      transfer_error_px)
 
-__all__ = ["WindowGeometry", "TrackCheck", "may_keep", "unverifiable_views", "verified_tracks", "UNVERIFIED_THRESHOLD",
-           "CHAIN_SLACK", "MIN_WITNESSES"]
+__all__ = ["WindowGeometry", "TrackCheck", "checkable_view_pairs", "may_keep", "unverifiable_views", "verified_tracks",
+           "UNVERIFIED_THRESHOLD", "CHAIN_SLACK", "MIN_WITNESSES"]
 
 #: The score a pair of an unverified view pair needs to be kept (see the module docstring).
 UNVERIFIED_THRESHOLD = 0.9
@@ -101,7 +101,7 @@ class WindowGeometry:
             self.verified[a, b] = self.verified[b, a] = True
             self.planar[a, b] = self.planar[b, a] = model.planar
         #: (V, V) symmetric: both views are large enough for a model
-        self.checkable = ~(self.small[:, None] | self.small[None, :])
+        self.checkable = checkable_view_pairs(problem)
         #: (V, V) symmetric: no trusted model although both views are large enough for one
         self.unverified = ~self.verified & self.checkable
         self._offsets = problem.view_offsets
@@ -266,11 +266,18 @@ def unverifiable_views(problem: Problem) -> np.ndarray:
     return problem.view_sizes < MIN_SEEDS
 
 
+def checkable_view_pairs(problem: Problem) -> np.ndarray:
+    """(V, V) bool, symmetric: both views have keypoints enough for a two-view model (neither is
+    :func:`unverifiable_views`), so the view pair's pairs can be checked against one."""
+    small = unverifiable_views(problem)
+    return ~(small[:, None] | small[None, :])
+
+
 def may_keep(model: Optional[PairModel], checkable: bool, res_h: np.ndarray, res_f: np.ndarray) -> np.ndarray:
     """Which candidate pairs of one view pair :meth:`WindowGeometry.keep` keeps at some score, from
     their residuals under the view pair's trusted ``model`` (:func:`.verify.residuals`, as the
     candidate edges compute them): every pair of a view pair that is unverifiable (not
-    ``checkable``: a view with fewer keypoints than a model needs, :attr:`WindowGeometry.checkable`)
+    ``checkable``: a view with fewer keypoints than a model needs, :func:`checkable_view_pairs`)
     or unverified (no model: its pairs are kept on their score), else those that agree with the
     model (:meth:`.verify.PairModel.agreeing`). A pair outside is dropped whatever its score, so a
     solver need not score it; the candidate edges apply this to each view pair as they find it.

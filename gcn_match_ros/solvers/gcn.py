@@ -22,7 +22,7 @@ import torch
 from ..descriptors import NORMALIZATIONS, describe_descriptor_kind, descriptor_kind
 from ..edges.ambiguity import ambiguous_pairs, check_ratio, near_copies
 from ..edges.candidates import RANK_CAP, CandidateJob, EdgeConfig, PairCandidates, ViewPair
-from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, may_keep, unverifiable_views, verified_tracks
+from ..edges.consistency import UNVERIFIED_THRESHOLD, WindowGeometry, checkable_view_pairs, may_keep, verified_tracks
 from ..edges.head import edge_config_of, edge_probabilities, has_edge_head
 from ..edges.neighbourhood import MIN_SHARED, NEIGHBOURS, check_neighbourhood
 from ..edges.rig_memory import RigMemory
@@ -422,11 +422,10 @@ class GCNSolver(Solver):
 def _may_keep_rule(problem: Problem) -> Callable[[ViewPair, Optional[PairModel], PairCandidates], np.ndarray]:
     """The candidate edges' ``keep`` rule when the solve verifies: each view pair's candidates that
     the window's trusted models may keep (:func:`gcn_match_ros.edges.consistency.may_keep`)."""
-    unverifiable = unverifiable_views(problem)
+    checkable = checkable_view_pairs(problem)
 
     def keep(pair: ViewPair, model: Optional[PairModel], part: PairCandidates) -> np.ndarray:
-        a, b = pair
-        return may_keep(model, not (unverifiable[a] or unverifiable[b]), part.res_h, part.res_f)
+        return may_keep(model, bool(checkable[pair]), part.res_h, part.res_f)
 
     return keep
 
