@@ -220,7 +220,7 @@ class WindowGeometry:
         Shapes: rows, cols (M,) keypoint indices of different views -> (M,) bool.
         """
         rows, cols, va, vb = self.in_view_order(rows, cols)
-        out = self.small[va] | self.small[vb]
+        out = ~self.checkable[va, vb]
         slot, matrices, by_h, tolerance = self._agreement_tables
         _pairs_agree(self.keypoints, rows, cols, slot[va, vb], *matrices, by_h, tolerance, float(slack), out)
         return out
