@@ -256,8 +256,12 @@ class SharedTasks:
                     return
                 k = self._order[self._taken]
                 self._taken += 1
+                # dropped once taken: a task that refers to the object owning these tasks (a bound
+                # method) would otherwise close a reference cycle, which keeps a window's arrays
+                # until the cyclic collector's rare full pass
+                task, self._tasks[k] = self._tasks[k], None
             try:
-                self._results[k] = self._tasks[k]()
+                self._results[k] = task()
             except BaseException as exc:  # handed to the thread that asks for the results
                 with self._changed:
                     self._errors.append(exc)

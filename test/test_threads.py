@@ -3,9 +3,11 @@ beside the caller on a second thread; the two threads placed on CPUs (pinned, ke
 import concurrent.futures
 import contextlib
 import functools
+import gc
 import os
 import threading
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -223,6 +225,30 @@ def test_shared_tasks_run_each_task_once_whoever_takes_it():
     assert SharedTasks([functools.partial(task, k) for k in range(4)], order=[2, 0, 3, 1]).results() == [0, 1, 4, 9]
     assert ran == [2, 0, 3, 1]
     assert SharedTasks([]).results() == []
+
+
+def test_shared_tasks_let_go_of_a_task_once_taken_so_an_owner_of_its_tasks_is_freed_without_the_cyclic_collector():
+    """A task that is its owner's bound method (as a window's candidate job hands out its view
+    pairs) would close a cycle owner -> tasks -> method -> owner: the owner, and every array it
+    holds, would then wait for the cyclic collector's rare full pass."""
+
+    class Owner:
+        def __init__(self):
+            self.tasks = SharedTasks([self.work, self.work])
+
+        def work(self):
+            return 1
+
+    gc.collect()
+    gc.disable()
+    try:
+        owner = Owner()
+        assert owner.tasks.results() == [1, 1]
+        freed = weakref.ref(owner)
+        del owner
+        assert freed() is None  # by reference counting alone
+    finally:
+        gc.enable()
 
 
 def test_shared_tasks_hand_the_first_error_to_the_caller_and_take_nothing_after_it():
