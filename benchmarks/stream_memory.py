@@ -9,9 +9,9 @@ persistent landmarks), back to back, freed memory kept as the node keeps it
 memory at the end, glibc's heap (held and in use, ``mallinfo2``), minor page faults a window,
 the cyclic garbage collector's full passes, and the window's time (median, p95).
 
-Memory that stays flat with few faults means each window frees what it made; memory that grows
-while the heap's share in use does not means arrays wait for the cyclic collector (a reference
-cycle) or the heap fragments.
+Memory that stays flat with few faults means each window frees what it made. A heap in use that
+grows means something outlives its window (state that grows, or arrays in a reference cycle waiting
+for the cyclic collector); a heap held that grows while the share in use does not means it fragments.
 
     OPENBLAS_NUM_THREADS=1 ./run.sh python benchmarks/stream_memory.py --cameras 8 --keypoints 500   # ~1 min
 """

@@ -226,7 +226,8 @@ class SharedTasks:
     runs tasks not yet taken until none is left, :meth:`results` helps, then waits for the tasks
     other threads took. A thread that would otherwise wait for work on the second thread helps
     instead (the ``gcn`` solver's candidate edges, a stream's landmark search); each task's
-    result is the same whoever ran it.
+    result is the same whoever ran it. A task is let go of once taken, so tasks may be bound
+    methods of the object that holds them without keeping it alive in a reference cycle.
 
     Args:
         tasks: callables without arguments.
@@ -256,8 +257,7 @@ class SharedTasks:
                     return
                 k = self._order[self._taken]
                 self._taken += 1
-                # dropped once taken: a task that refers to the object owning these tasks (a bound
-                # method) would otherwise close a reference cycle, which keeps a window's arrays
+                # let go of once taken (class docstring): a cycle would keep a window's arrays
                 # until the cyclic collector's rare full pass
                 task, self._tasks[k] = self._tasks[k], None
             try:
