@@ -13,7 +13,8 @@ subscriber:
   windowing, graph, solver, rounding, packing, DDS out), p50 / p95 / max;
 - throughput = windows received per second over the measured interval;
 - drops: windows not received (of those sent), windows with fewer views than cameras,
-  and the node's own counters from /diagnostics (superseded / stale / errors, frames lost).
+  and the node's own counters from /diagnostics (superseded / stale / errors, frames lost);
+- memory: the node process's resident memory when measuring begins and after the last window.
 
 The first ``--warmup`` seconds of each configuration are not measured. Prints a markdown
 table and writes it, with the command and the machine, to
@@ -171,6 +172,18 @@ def max_keypoints(n_kp: int) -> int:
     return max(n_kp, 1024)
 
 
+def process_rss_mb(pid: int) -> float:
+    """Resident memory of process ``pid`` [MB] (Linux's /proc; nan where it cannot be read)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        pass
+    return float("nan")
+
+
 def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -245,6 +258,8 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
             for m, pub in zip(captures[k % len(captures)], pubs):
                 m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
                 pub.publish(m)
+            if k == measure_from:
+                rss_start = process_rss_mb(node_proc.pid)
             if k >= measure_from:
                 sent_stamps.append(now)
         # Let the last windows arrive, then take the node's counters from a report after them.
@@ -256,6 +271,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
         while time.monotonic() < end and reports[0] < reports_then + 2:
             time.sleep(0.01)
         diag_end = dict(diag)
+        rss_end = process_rss_mb(node_proc.pid)
     finally:
         stop_node_process(node_proc, timeout=20)
         executor.shutdown(timeout_sec=1.0)
@@ -287,7 +303,8 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
         throughput=len(stamps) / span, windows_dropped=windows_dropped, frames_dropped=frames_dropped,
         frames_lost=max(0, frames_sent - frames_in) if diag_end else None,
         budget=diag_end.get("keypoint budget", "?"), degraded=diag_end.get("windows degraded", "?"),
-        association=float(diag_end.get("landmark association p50 [ms]", "nan")) * 1e-3)
+        association=float(diag_end.get("landmark association p50 [ms]", "nan")) * 1e-3,
+        rss_start=rss_start, rss_end=rss_end)
     return result
 
 
@@ -347,8 +364,9 @@ def main(argv=None) -> int:
                   f"{_fmt_drops(r['windows_dropped'])}", flush=True)
     header = ("| cameras | keypoints/view | windows received / sent | partial | latency p50 [ms] | p95 [ms] | "
               "max [ms] | node compute p50 [ms] | of it landmark association [ms] | throughput [windows/s] | "
-              "windows dropped by the node | frames lost / dropped | keypoint budget at the end / windows degraded |\n"
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "windows dropped by the node | frames lost / dropped | keypoint budget at the end / windows degraded | "
+              "node RSS, start -> end of measuring [MB] |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [header]
     for r in rows:
         lost = "?" if r["frames_lost"] is None else str(r["frames_lost"])
@@ -356,7 +374,8 @@ def main(argv=None) -> int:
                      f"{1e3 * r['p50']:.1f} | {1e3 * r['p95']:.1f} | {1e3 * r['max']:.1f} | "
                      f"{1e3 * r['compute']:.1f} | {_fmt_ms(r['association'])} | {r['throughput']:.1f} | "
                      f"{_fmt_drops(r['windows_dropped'])} | "
-                     f"{lost} / {_fmt_drops(r['frames_dropped'])} | {r['budget']} / {r['degraded']} |")
+                     f"{lost} / {_fmt_drops(r['frames_dropped'])} | {r['budget']} / {r['degraded']} | "
+                     f"{r['rss_start']:.0f} -> {r['rss_end']:.0f} |")
     table = "\n".join(lines)
     goal = [r for r in rows if (r["cameras"], r["keypoints"]) == GOAL[:2]]
     verdict = ""
@@ -383,7 +402,8 @@ than cameras; "windows dropped by the node" = its /diagnostics counters (`supers
 window replaced one waiting for the busy worker; `stale_window`); "frames lost" = frames sent
 but never received by the node (transport), "dropped" = frames it rejected; "keypoint budget" = the
 keypoints per view the node solved at the end of the run (`degrade_min_keypoints`: lowered while
-windows are superseded), "windows degraded" = windows it solved below `max_keypoints`. Timings depend on
+windows are superseded), "windows degraded" = windows it solved below `max_keypoints`; "node RSS" = the
+node process's resident memory when the measured captures begin and after the last window. Timings depend on
 what else runs: mind the load average above (2 cores shared with other jobs inflate every number).
 
 {table}
