@@ -12,7 +12,6 @@ minute: live landmarks, born / retired so far, resident memory, association ms p
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 from pathlib import Path
@@ -20,16 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from gcn_match_ros.data.rig_sequence import RigSequenceConfig, rig_windows
-from gcn_match_ros.experiments import results_header, write_results
+from gcn_match_ros.experiments import resident_memory_mb, results_header, write_results
 from gcn_match_ros.landmarks import LandmarkTracker
 
 REPO = Path(__file__).resolve().parents[1]
 RATE_HZ = 10
-
-
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * resource.getpagesize() / 2**20
 
 
 def main(argv=None) -> int:
@@ -52,9 +46,9 @@ def main(argv=None) -> int:
         tracker.update(p.camera_ids, p.view_offsets, p.keypoints, p.descriptors, track, stamp)
         spent.append(time.perf_counter() - t0)
         if (k + 1) % (60 * RATE_HZ) == 0 or k + 1 == windows:
-            rows.append((k + 1, len(tracker), tracker.born, tracker.retired, _rss_mb(),
+            rows.append((k + 1, len(tracker), tracker.born, tracker.retired, resident_memory_mb(),
                          1e3 * float(np.median(spent[-600:]))))
-            print(f"minute {(k + 1) / 600:.1f}: {len(tracker)} live, {_rss_mb():.0f} MB", flush=True)
+            print(f"minute {(k + 1) / 600:.1f}: {len(tracker)} live, {resident_memory_mb():.0f} MB", flush=True)
     lines = ["| stream time [min] | windows | live landmarks | born | retired | RSS [MB] | association [ms/window, median] |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {w / 600:.1f} | {w} | {live} | {born} | {ret} | {rss:.0f} | {ms:.1f} |"

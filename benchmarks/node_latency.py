@@ -43,7 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from gcn_match_ros import solvers
-from gcn_match_ros.experiments import describe_machine, python_speed, results_header, write_results, run_note
+from gcn_match_ros.experiments import (describe_machine, python_speed, resident_memory_mb, results_header,
+                                      run_note, write_results)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -172,18 +173,6 @@ def max_keypoints(n_kp: int) -> int:
     return max(n_kp, 1024)
 
 
-def process_rss_mb(pid: int) -> float:
-    """Resident memory of process ``pid`` [MB] (Linux's /proc; nan where it cannot be read)."""
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError):
-        pass
-    return float("nan")
-
-
 def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -259,7 +248,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
                 m.header.stamp.sec, m.header.stamp.nanosec = sec, nsec
                 pub.publish(m)
             if k == measure_from:
-                rss_start = process_rss_mb(node_proc.pid)
+                rss_start = resident_memory_mb(node_proc.pid)
             if k >= measure_from:
                 sent_stamps.append(now)
         # Let the last windows arrive, then take the node's counters from a report after them.
@@ -271,7 +260,7 @@ def run_config(n_cams, n_kp, args, solver, env, domain) -> dict:
         while time.monotonic() < end and reports[0] < reports_then + 2:
             time.sleep(0.01)
         diag_end = dict(diag)
-        rss_end = process_rss_mb(node_proc.pid)
+        rss_end = resident_memory_mb(node_proc.pid)
     finally:
         stop_node_process(node_proc, timeout=20)
         executor.shutdown(timeout_sec=1.0)

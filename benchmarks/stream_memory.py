@@ -31,11 +31,12 @@ import torch
 from gcn_match_ros import solvers
 from gcn_match_ros.allocator import keep_freed_memory
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
-from gcn_match_ros.experiments import results_header, write_results
+from gcn_match_ros.experiments import resident_memory_mb, results_header, write_results
 from gcn_match_ros.stream import StreamState, solve_window
 
 REPO = Path(__file__).resolve().parents[1]
 ROW = 100  # windows a row
+MANY_FAULTS = 300  # page faults of a window that faulted fresh memory in (>= 1.2 MB), counted apart
 
 
 class _MallInfo2(ctypes.Structure):
@@ -55,11 +56,6 @@ def _heap_mb():
     return (m.arena + m.hblkhd) / 2**20, (m.uordblks + m.hblkhd) / 2**20
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * resource.getpagesize() / 2**20
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--solver", default="gcn")
@@ -77,7 +73,7 @@ def main(argv=None) -> int:
     full_passes = []
     gc.callbacks.append(lambda phase, info: full_passes.append(1) if phase == "stop" and info["generation"] == 2 else None)
     solve_window(solver, problem, state, 0)  # model, compiled code, the rig's first fits
-    start_rss, times, faults, rows = _rss_mb(), [], [], []
+    start_rss, times, faults, rows = resident_memory_mb(), [], [], []
     for k in range(1, args.windows + 1):
         before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         t0 = time.perf_counter()
@@ -87,13 +83,13 @@ def main(argv=None) -> int:
         if k % ROW == 0:
             held, in_use = _heap_mb()
             ms = 1e3 * np.asarray(times[-ROW:])
-            rows.append((k - ROW + 1, k, _rss_mb(), held, in_use, float(np.mean(faults[-ROW:])),
-                         int(np.sum(np.asarray(faults[-ROW:]) > 300)), len(full_passes),
+            rows.append((k - ROW + 1, k, resident_memory_mb(), held, in_use, float(np.mean(faults[-ROW:])),
+                         int(np.sum(np.asarray(faults[-ROW:]) > MANY_FAULTS)), len(full_passes),
                          float(np.median(ms)), float(np.percentile(ms, 95))))
             print(f"windows {k - ROW + 1}-{k}: RSS {rows[-1][2]:.0f} MB, {rows[-1][5]:.0f} faults a window, "
                   f"p50 {rows[-1][8]:.1f} ms", flush=True)
     lines = ["| windows | RSS at the end [MB] | heap held / in use [MB] | page faults a window (mean) | "
-             "windows with > 300 faults | full GC passes so far | window p50 / p95 [ms] |",
+             f"windows with > {MANY_FAULTS} faults | full GC passes so far | window p50 / p95 [ms] |",
              "|---|---|---|---|---|---|---|"]
     lines += [f"| {a}-{b} | {rss:.0f} | {held:.0f} / {used:.0f} | {f:.0f} | {many} | {gcs} | {p50:.1f} / {p95:.1f} |"
               for a, b, rss, held, used, f, many, gcs, p50, p95 in rows]

@@ -41,7 +41,7 @@ __all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WI
            "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
            "describe_machine", "command_line", "results_header", "write_results", "python_speed", "speed_note",
-           "run_note"]
+           "run_note", "resident_memory_mb"]
 
 
 #: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
@@ -348,6 +348,19 @@ def python_speed() -> float:
     for i in range(10_000_000):
         total += i
     return time.perf_counter() - start
+
+
+def resident_memory_mb(pid: Optional[int] = None) -> float:
+    """Resident memory of process ``pid`` (None: this one) in MB, from Linux's /proc; nan where it
+    cannot be read (another system, a process gone)."""
+    try:
+        with open(f"/proc/{'self' if pid is None else int(pid)}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        pass
+    return float("nan")
 
 
 def speed_note(before: float, after: float) -> str:

@@ -1,4 +1,5 @@
 """Tests of gcn_match_ros.experiments: the split of the real scenes, window subsets, results headers, the gcn lead."""
+import os
 import platform
 import re
 import sys
@@ -125,6 +126,15 @@ def test_describe_machine_shape():
     full = describe_machine("1 per run", extra=["load 0.5"])
     assert full.startswith(plain) and full.endswith(f", torch {torch.__version__}, torch threads 1 per run, load 0.5")
     assert experiments.cpu_name()
+
+
+def test_resident_memory_follows_what_the_process_touches_and_is_nan_for_no_process():
+    before = experiments.resident_memory_mb()
+    block = np.ones(64 * 2**20 // 8)  # 64 MB, every page written
+    assert experiments.resident_memory_mb() - before > 50
+    del block
+    assert experiments.resident_memory_mb(os.getpid()) > 0
+    assert np.isnan(experiments.resident_memory_mb(2**22 + 12345))  # above Linux's pid limit
 
 
 @pytest.fixture(scope="module")
