@@ -42,7 +42,7 @@ from ..threads import SharedTasks
 from ..timing import stage
 from .rig_memory import RigMemory
 from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
-                     check_planar_ratio, f_residual, fit_pair, h_residual, may_be_trusted, model_matrices)
+                     check_planar_ratio, fit_pair, matrix_residuals, may_be_trusted, model_matrices)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
            "EDGE_FEATURES", "RANK_CAP"]
@@ -396,8 +396,8 @@ def _pair_candidates(sim, top_r, ir, top_c, ic, k, ga, gb, ratio, xa, xb, H, Hi,
     """One view pair's candidates and per-pair features, one compiled call after its fit: each
     keypoint's ``k`` best in the other view and the guided pairs (ga[g], gb[g]), each pair once
     (:func:`_deduplicated`), their descriptor features (:func:`_descriptor_features`) and their
-    residuals under H and F where the model has them (inf elsewhere; the formulas of
-    :func:`.verify.residuals`). One call instead of a dozen numpy steps, which held the GIL that
+    residuals under H and F where the model has them (:func:`.verify.matrix_residuals`: inf
+    elsewhere). One call instead of a dozen numpy steps, which held the GIL that
     the solver's network on the other thread waits for at each of its operations.
 
     Shapes: sim (na, nb) float32; top_r, ir (na, K), top_c, ic (nb, K) best lists, K >= max(k, 2);
@@ -424,15 +424,7 @@ def _pair_candidates(sim, top_r, ir, top_c, ic, k, ga, gb, ratio, xa, xb, H, Hi,
     ea, eb, guided = _deduplicated(ea, eb, guided, na, nb)
     cosine, rank_a, rank_b, ratio_a, ratio_b, mutual, confident = _descriptor_features(sim, top_r, top_c, ea, eb,
                                                                                        ratio)
-    rh = np.full(ea.shape[0], np.inf)
-    rf = np.full(ea.shape[0], np.inf)
-    if has_h or has_f:
-        for m in range(ea.shape[0]):
-            x, y, u, v = xa[ea[m], 0], xa[ea[m], 1], xb[eb[m], 0], xb[eb[m], 1]
-            if has_h:
-                rh[m] = h_residual(x, y, u, v, H, Hi)
-            if has_f:
-                rf[m] = f_residual(x, y, u, v, F)
+    rh, rf = matrix_residuals(xa[ea], xb[eb], H, Hi, F, has_h, has_f)
     return ea, eb, guided, cosine, rank_a, rank_b, ratio_a, ratio_b, mutual, confident, rh, rf
 
 
