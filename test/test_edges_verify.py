@@ -105,6 +105,8 @@ def test_residuals_are_symmetric_transfer_and_sampson_errors():
     assert np.all(np.isinf(missing_h))
     singular_h, _ = residuals(PairModel(np.ones((3, 3)), None), xa, xb)
     assert np.all(np.isinf(singular_h))  # no pair agrees with a singular H
+    no_h, no_f = residuals(None, xa, xb)  # a view pair without a model
+    assert np.all(np.isinf(no_h)) and np.all(np.isinf(no_f))
     empty_h, empty_f = residuals(PairModel(H_TRUE, F_true), np.zeros((0, 2)), np.zeros((0, 2)))
     assert empty_h.shape == empty_f.shape == (0,)
 

@@ -379,7 +379,7 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
     if config.guided and model is not None:
         with stage("geometry"):
             ga, gb = _guided(sim, xa, xb, model, config.guide_px)
-    H, Hi, F, has_h, has_f = _NO_MODEL if model is None else model_matrices(model)
+    H, Hi, F, has_h, has_f = model_matrices(model)
     ea, eb, guided, s, rank_a, rank_b, rat_a, rat_b, mutual, conf, rh, rf = _pair_candidates(
         sim, top_r, ir, top_c, ic, min(config.k, na, nb), ga, gb, float(config.ratio), xa, xb, H, Hi, F, has_h, has_f)
     kind = 0.0 if model is None else 2.0 if model.planar else 1.0
@@ -387,8 +387,6 @@ def _pair_edges(sim_t: torch.Tensor, best: Tuple[np.ndarray, np.ndarray, np.ndar
 
 
 _NONE_GUIDED = np.zeros(0, np.int64)
-#: :func:`_pair_candidates`' model arguments for a view pair without a trusted model.
-_NO_MODEL = (np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 3)), False, False)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -323,9 +323,9 @@ def _essential_with_cheirality(ua: np.ndarray, ub: np.ndarray, threshold: float,
     return best, inliers, int(me.sum())
 
 
-def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def residuals(model: Optional[PairModel], xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """(H symmetric transfer error, F Sampson distance) in pixels; inf where a model is missing
-    (and H's where it is singular).
+    (both for no model, None; H's where it is singular).
 
     Shapes: xa, xb (M, 2) -> (M,) float64 twice.
     """
@@ -333,12 +333,15 @@ def residuals(model: PairModel, xa: np.ndarray, xb: np.ndarray) -> Tuple[np.ndar
                       *model_matrices(model))
 
 
-def model_matrices(model: PairModel):
+def model_matrices(model: Optional[PairModel]):
     """``model`` as :func:`matrix_residuals` takes it: H, H⁻¹, F (3, 3) float64 each (zeros where
-    missing), whether H is used (it is, with an inverse) and whether F is."""
+    missing), whether H is used (it is, with an inverse) and whether F is; None (no model):
+    neither is used."""
+    missing = np.zeros((3, 3))
+    if model is None:
+        return missing, missing, missing, False, False
     F, Hi = model.F, model.H_inverse
     H = None if Hi is None else model.H
-    missing = np.zeros((3, 3))
     return (missing if H is None else np.asarray(H, np.float64), missing if Hi is None else Hi,
             missing if F is None else np.asarray(F, np.float64), H is not None, F is not None)
 
