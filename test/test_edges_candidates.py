@@ -8,6 +8,7 @@ from gcn_match_ros.edges.candidates import (EDGE_FEATURES, RANK_CAP, CandidateJo
 from gcn_match_ros.edges.verify import matrix_residuals
 from gcn_match_ros.descriptors import cosine_distance, normalize_descriptors
 from gcn_match_ros.similarity import most_similar
+from gcn_match_ros.geometry import skew
 
 from conftest import permuted_views_problem
 
@@ -261,27 +262,67 @@ def test_a_pair_block_holds_the_kept_candidates_columns_as_numpy_casts_them():
         np.testing.assert_array_equal(features, expected)
 
 
-def test_epipolar_guided_candidates_follow_the_dense_rule():
-    """The compiled pass gives, per keypoint, the most similar keypoint of the other view within
-    px of both epipolar lines — what the distance matrix and a masked argmax give."""
-    from gcn_match_ros.edges.candidates import _best_near_lines
-    from gcn_match_ros.geometry import epipolar_distance_matrix, homogeneous
+def _dense_best_near_lines(sim, F, xa, xb, px):
+    """The rule of candidates._best_near_lines from the distance matrix and a masked argmax."""
+    from gcn_match_ros.geometry import epipolar_distance_matrix
 
+    masked = np.where(epipolar_distance_matrix(F, xa, xb) < px, sim, -np.inf)
+    return (np.where(np.isfinite(masked.max(1)), masked.argmax(1), -1),
+            np.where(np.isfinite(masked.max(0)), masked.argmax(0), -1))
+
+
+# Epipolar geometries of b: lines that do not meet in one point (a general matrix), an epipole
+# far outside the image (cameras side by side), one inside it (a camera moving forwards: keypoints
+# around it in every direction, wedges that wrap), and parallel lines (a rectified stereo pair).
+_GEOMETRIES = {
+    "general": np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]]),
+    "epipole outside": skew(np.array([2500.0, -900.0, 1.0])),
+    "epipole inside": skew(np.array([320.0, 300.0, 1.0])),
+    "parallel lines": skew(np.array([1.0, 0.0, 0.0])),
+}
+
+
+@pytest.mark.parametrize("geometry", sorted(_GEOMETRIES))
+def test_epipolar_guided_candidates_follow_the_dense_rule(geometry):
+    """The compiled pass gives, per keypoint, the most similar keypoint of the other view within
+    px of both epipolar lines — what the distance matrix and a masked argmax give — whether the
+    lines meet inside the image, far outside it, nowhere (parallel) or not in one point."""
+    from gcn_match_ros.edges.candidates import _best_near_lines
+    from gcn_match_ros.geometry import homogeneous
+
+    F = _GEOMETRIES[geometry]
     rng = np.random.default_rng(7)
-    F = np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]])
-    xa, xb = rng.uniform(0, 640, (60, 2)), rng.uniform(0, 640, (70, 2))
-    sim = rng.random((60, 70)).astype(np.float32)
+    xa, xb = rng.uniform(0, 640, (300, 2)), rng.uniform(0, 640, (320, 2))
+    sim = rng.random((300, 320)).astype(np.float32)
     sim[:, 5] = sim[:, 6]  # ties: the first keypoint, as argmax
+    sim[::7] = np.round(sim[::7] * 4) / 4  # rows of many ties
     found = []
-    for px in (3.0, 40.0, 200.0):
+    for px in (0.5, 3.0, 40.0, 200.0):
         j, i = _best_near_lines(sim, homogeneous(xa) @ F.T, homogeneous(xb) @ F, xa, xb, px)
         found.append(int((j >= 0).sum()))
-        masked = np.where(epipolar_distance_matrix(F, xa, xb) < px, sim, -np.inf)
-        want_j = np.where(np.isfinite(masked.max(1)), masked.argmax(1), -1)
-        want_i = np.where(np.isfinite(masked.max(0)), masked.argmax(0), -1)
+        want_j, want_i = _dense_best_near_lines(sim, F, xa, xb, px)
         np.testing.assert_array_equal(j, want_j)
         np.testing.assert_array_equal(i, want_i)
-    assert 0 < found[0] < 60 and found[0] <= found[1] <= found[2]  # the tolerance matters
+    assert 0 < found[1] < 300 and found[0] <= found[1] <= found[2] <= found[3]  # the tolerance matters
+
+
+def test_epipolar_lines_meet_at_the_epipole_or_nowhere():
+    """Where the lines meet is the epipole (the keypoints' directions from it index them); parallel
+    lines meet nowhere, and those keypoints are then put against every line."""
+    from gcn_match_ros.edges.candidates import _direction_bins, _lines_meet
+    from gcn_match_ros.geometry import homogeneous
+
+    xa, xb = np.random.default_rng(3).uniform(0, 640, (2, 200, 2))
+    x, y, meet = _lines_meet(homogeneous(xa) @ _GEOMETRIES["epipole inside"].T)
+    assert meet and np.allclose([x, y], [320.0, 300.0])
+    near, r_min, (key_lo, key_hi, _), bin_start, binned = _direction_bins(xb[:, 0].copy(), xb[:, 1].copy(),
+                                                                          x, y, 48.0, meet)
+    r = np.hypot(xb[:, 0] - x, xb[:, 1] - y)
+    np.testing.assert_array_equal(near, np.flatnonzero(r < 48.0))
+    assert r_min == r[r >= 48.0].min() and sorted(binned) == list(np.flatnonzero(r >= 48.0))
+    assert 0.0 <= key_lo < 0.1 and 1.9 < key_hi < 2.0  # directions all round: keys span [0, 2)
+    assert bin_start[-1] == binned.size and np.all(np.diff(bin_start) >= 0)
+    assert not _lines_meet(homogeneous(xa) @ _GEOMETRIES["parallel lines"].T)[2]
 
 
 def test_edge_config_fits_and_trusts_with_its_own_settings():
