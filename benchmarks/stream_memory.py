@@ -32,6 +32,7 @@ from gcn_match_ros import solvers
 from gcn_match_ros.allocator import keep_freed_memory
 from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 from gcn_match_ros.experiments import resident_memory_mb, results_header, write_results
+from gcn_match_ros.libc import c_function
 from gcn_match_ros.stream import StreamState, solve_window
 
 REPO = Path(__file__).resolve().parents[1]
@@ -47,11 +48,9 @@ class _MallInfo2(ctypes.Structure):
 def _heap_mb():
     """(held, in use) MB of glibc's heap over all arenas plus its own mappings; (nan, nan) where
     the C library has no ``mallinfo2``."""
-    try:
-        mallinfo2 = ctypes.CDLL(None).mallinfo2
-    except (OSError, AttributeError):
+    mallinfo2 = c_function("mallinfo2", (), _MallInfo2)
+    if mallinfo2 is None:
         return float("nan"), float("nan")
-    mallinfo2.restype = _MallInfo2
     m = mallinfo2()
     return (m.arena + m.hblkhd) / 2**20, (m.uordblks + m.hblkhd) / 2**20
 

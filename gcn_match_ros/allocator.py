@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import ctypes
 
+from .libc import c_function
+
 __all__ = ["keep_freed_memory", "MMAP_THRESHOLD", "TRIM_THRESHOLD"]
 
 #: Requests at least this large get a mapping of their own, returned when freed: 32 MiB, the
@@ -40,10 +42,8 @@ def keep_freed_memory(mmap_threshold: int = MMAP_THRESHOLD, trim_threshold: int 
     Returns:
         True when set; False where the C library is not glibc (no ``mallopt``) or refused a value.
     """
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
+    mallopt = c_function("mallopt", (ctypes.c_int, ctypes.c_int), ctypes.c_int)
+    if mallopt is None:
         return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold)) == 1
                 and mallopt(_M_TRIM_THRESHOLD, int(trim_threshold)) == 1)

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import ctypes
 import os
 import threading
 from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
@@ -49,6 +48,7 @@ from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
 import torch
 from threadpoolctl import threadpool_limits
 
+from .libc import c_function
 from .timing import StageTimes, add_to_active
 
 __all__ = ["single_blas_thread", "solve_cpus", "pinned_solve_threads", "kept_apart", "alongside", "deferred",
@@ -61,8 +61,8 @@ _second_tid: Optional[int] = None  # the second thread's id for the OS (sched_se
 _second_placed = False  # inside a pinned_solve_threads block
 _cores_taken = 0     # started functions whose results are not yet taken (_take_core)
 _threads_before = 1  # the caller's torch threads before the first of them
-# glibc's sched_getcpu: the CPU the calling thread runs on (Python has no binding)
-_libc = ctypes.CDLL(None) if hasattr(os, "sched_setaffinity") else None
+# the CPU the calling thread runs on, where threads can be placed
+_sched_getcpu = c_function("sched_getcpu") if hasattr(os, "sched_setaffinity") else None
 
 
 def single_blas_thread() -> None:
@@ -153,10 +153,10 @@ def kept_apart(enabled: bool = True) -> Iterator[None]:
 def _this_cpu() -> Optional[int]:
     """The CPU the calling thread runs on, if it may run on others too and is not the second
     thread itself; else None."""
-    if (_libc is None or threading.current_thread().name.startswith(_SECOND_THREAD)
+    if (_sched_getcpu is None or threading.current_thread().name.startswith(_SECOND_THREAD)
             or len(os.sched_getaffinity(0)) < 2):
         return None
-    cpu = _libc.sched_getcpu()
+    cpu = _sched_getcpu()
     return cpu if cpu >= 0 else None
 
 
