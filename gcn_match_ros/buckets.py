@@ -1,5 +1,5 @@
-"""Compiled sorting of small buckets, shared by the graph's edge merge, the candidate edges and the
-network's normalised adjacency.
+"""Compiled sorting of small buckets, shared by the candidate edges and the network's normalised
+adjacency.
 
 Each sorts entries first by one key with a counting sort (bucket boundaries ``start``), then each
 bucket, a few dozen entries at most, by a second key: :func:`sort_buckets` is that second step.

@@ -23,7 +23,6 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from .buckets import sort_buckets
 from .configs import JsonConfig
 from .descriptors import NORMALIZATIONS, cosine_distance32
 from .problem import Problem
@@ -181,48 +180,56 @@ def _merged_both_ways(n, rows, cols, cosine, ratio, rank):
     """The directed candidates (rows[m] -> cols[m]) as the graph's entries: every pair once in
     each direction, sorted by (row, col); a pair proposed from both ends is one entry per
     direction with the lower ratio and rank and the count of its proposals (1 or 2). The cosine
-    is the same from both ends. A counting sort by row, then each row's few entries by column.
+    is the same from both ends.
+
+    Each proposal is two slots, one from each end; two stable counting sorts put them in order,
+    by column and then by row, so a pair's slots come out side by side. (Sorting each row's
+    ~2 k (V - 1) slots by column after one counting sort by row, with insertion sorts, took 1.01
+    ms a 4 x 500 stream window in the solve against 0.79; at 8 x 500 both 5.8 ms.)
 
     Shapes: (M,) each -> rows, cols (E,) int64, cosine, ratio (E,) float32, rank, count (E,) int64.
     """
     m = rows.shape[0]
+    # a node has as many slots as a row as it has as a column: one count serves both sorts
     start = np.zeros(n + 1, np.int64)
     for e in range(m):
         start[rows[e] + 1] += 1
         start[cols[e] + 1] += 1
     for v in range(n):
         start[v + 1] += start[v]
+    # slot e < m: rows[e] -> cols[e]; slot m + e: cols[e] -> rows[e]
     fill = start[:-1].copy()
-    other = np.empty(2 * m, np.int64)
-    entry = np.empty(2 * m, np.int64)  # the proposal each slot came from
+    by_col = np.empty(2 * m, np.int64)
     for e in range(m):
-        a, b = rows[e], cols[e]
-        other[fill[a]], entry[fill[a]] = b, e
-        fill[a] += 1
-        other[fill[b]], entry[fill[b]] = a, e
-        fill[b] += 1
+        by_col[fill[cols[e]]] = e
+        fill[cols[e]] += 1
+        by_col[fill[rows[e]]] = m + e
+        fill[rows[e]] += 1
+    fill = start[:-1].copy()
+    by_row = np.empty(2 * m, np.int64)
+    for t in range(2 * m):
+        s = by_col[t]
+        r = rows[s] if s < m else cols[s - m]
+        by_row[fill[r]] = s
+        fill[r] += 1
     out_rows = np.empty(2 * m, np.int64)
     out_cols = np.empty(2 * m, np.int64)
     out_cos = np.empty(2 * m, np.float32)
     out_ratio = np.empty(2 * m, np.float32)
     out_rank = np.empty(2 * m, np.int64)
     out_count = np.empty(2 * m, np.int64)
-    sort_buckets(start, other, entry)  # by column: a row holds at most 2 k (V - 1) slots
     size = 0
-    for v in range(n):
-        lo, hi = start[v], start[v + 1]
-        s = lo
-        while s < hi:
-            e = entry[s]
-            out_rows[size], out_cols[size] = v, other[s]
+    for t in range(2 * m):
+        s = by_row[t]
+        e = s if s < m else s - m
+        r, c = (rows[e], cols[e]) if s < m else (cols[e], rows[e])
+        if size > 0 and out_rows[size - 1] == r and out_cols[size - 1] == c:
+            out_ratio[size - 1] = min(out_ratio[size - 1], ratio[e])
+            out_rank[size - 1] = min(out_rank[size - 1], rank[e])
+            out_count[size - 1] += 1
+        else:
+            out_rows[size], out_cols[size] = r, c
             out_cos[size], out_ratio[size], out_rank[size], out_count[size] = cosine[e], ratio[e], rank[e], 1
-            s += 1
-            while s < hi and other[s] == other[s - 1]:
-                e = entry[s]
-                out_ratio[size] = min(out_ratio[size], ratio[e])
-                out_rank[size] = min(out_rank[size], rank[e])
-                out_count[size] += 1
-                s += 1
             size += 1
     return (out_rows[:size], out_cols[:size], out_cos[:size], out_ratio[:size], out_rank[:size],
             out_count[:size])

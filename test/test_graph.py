@@ -90,6 +90,36 @@ def test_a_pair_proposed_from_both_ends_is_one_entry_each_way_with_the_lower_rat
     assert cos.dtype == ratio.dtype == np.float32 and rank.dtype == count.dtype == np.int64
 
 
+def test_merged_entries_match_a_dictionary_of_pairs():
+    """On many random proposals (a third of them also made from the other end), the merge is what a
+    dictionary keyed by (row, col) gives: every pair both ways, sorted, the lower ratio and rank,
+    the count of its proposals, the cosine of its first."""
+    from gcn_match_ros.graph import _merged_both_ways
+
+    rng = np.random.default_rng(5)
+    n = 60
+    pairs = {(int(a), int(b)) for a, b in rng.integers(0, n, (900, 2)) if a != b}
+    pairs = sorted(pairs | {(b, a) for a, b in list(pairs)[::3]})
+    rows, cols = np.array(pairs).T
+    pair_cos = {}
+    cos = np.array([pair_cos.setdefault(frozenset(p), rng.random()) for p in pairs], np.float32)
+    ratio, rank = rng.random(len(pairs)).astype(np.float32), rng.integers(0, 5, len(pairs))
+    order = rng.permutation(len(pairs))  # proposals in no particular order
+    got = _merged_both_ways(n, rows[order], cols[order], cos[order], ratio[order], rank[order])
+    want = {}
+    for a, b, c, q, k in zip(rows, cols, cos, ratio, rank):
+        for key in ((a, b), (b, a)):
+            old = want.get(key)
+            want[key] = (c, q, k, 1) if old is None else (c, min(old[1], q), min(old[2], k), old[3] + 1)
+    keys = sorted(want)
+    assert list(zip(got[0].tolist(), got[1].tolist())) == keys
+    np.testing.assert_array_equal(got[2], [want[k][0] for k in keys])
+    np.testing.assert_array_equal(got[3], [want[k][1] for k in keys])
+    np.testing.assert_array_equal(got[4], [want[k][2] for k in keys])
+    np.testing.assert_array_equal(got[5], [want[k][3] for k in keys])
+    assert got[5].max() == 2 and got[5].min() == 1
+
+
 def test_edges_grow_linearly_not_quadratically():
     p = permuted_views_problem(n_views=4, n_points=400, noise=0.3, dim=32)
     g = build_graph(p, GraphConfig.paper(4))
