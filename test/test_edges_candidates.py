@@ -273,7 +273,7 @@ def _dense_best_near_lines(sim, F, xa, xb, px):
 
 # Epipolar geometries of b: lines that do not meet in one point (a general matrix), an epipole
 # far outside the image (cameras side by side), one inside it (a camera moving forwards: keypoints
-# around it in every direction, wedges that wrap), and parallel lines (a rectified stereo pair).
+# around it in every direction), and parallel lines (a rectified stereo pair).
 _GEOMETRIES = {
     "general": np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]]),
     "epipole outside": skew(np.array([2500.0, -900.0, 1.0])),
@@ -304,25 +304,6 @@ def test_epipolar_guided_candidates_follow_the_dense_rule(geometry):
         np.testing.assert_array_equal(j, want_j)
         np.testing.assert_array_equal(i, want_i)
     assert 0 < found[1] < 300 and found[0] <= found[1] <= found[2] <= found[3]  # the tolerance matters
-
-
-def test_epipolar_lines_meet_at_the_epipole_or_nowhere():
-    """Where the lines meet is the epipole (the keypoints' directions from it index them); parallel
-    lines meet nowhere, and those keypoints are then put against every line."""
-    from gcn_match_ros.edges.candidates import _direction_bins, _lines_meet
-    from gcn_match_ros.geometry import homogeneous
-
-    xa, xb = np.random.default_rng(3).uniform(0, 640, (2, 200, 2))
-    x, y, meet = _lines_meet(homogeneous(xa) @ _GEOMETRIES["epipole inside"].T)
-    assert meet and np.allclose([x, y], [320.0, 300.0])
-    near, r_min, (key_lo, key_hi, _), bin_start, binned = _direction_bins(xb[:, 0].copy(), xb[:, 1].copy(),
-                                                                          x, y, 48.0, meet)
-    r = np.hypot(xb[:, 0] - x, xb[:, 1] - y)
-    np.testing.assert_array_equal(near, np.flatnonzero(r < 48.0))
-    assert r_min == r[r >= 48.0].min() and sorted(binned) == list(np.flatnonzero(r >= 48.0))
-    assert 0.0 <= key_lo < 0.1 and 1.9 < key_hi < 2.0  # directions all round: keys span [0, 2)
-    assert bin_start[-1] == binned.size and np.all(np.diff(bin_start) >= 0)
-    assert not _lines_meet(homogeneous(xa) @ _GEOMETRIES["parallel lines"].T)[2]
 
 
 def test_edge_config_fits_and_trusts_with_its_own_settings():
