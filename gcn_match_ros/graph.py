@@ -183,9 +183,10 @@ def _merged_both_ways(n, rows, cols, cosine, ratio, rank):
     is the same from both ends.
 
     Each proposal is two slots, one from each end; two stable counting sorts put them in order,
-    by column and then by row, so a pair's slots come out side by side. (Sorting each row's
-    ~2 k (V - 1) slots by column after one counting sort by row, with insertion sorts, took 1.01
-    ms a 4 x 500 stream window in the solve against 0.79; at 8 x 500 both 5.8 ms.)
+    by column and then by row, so a pair's slots come out side by side. Against one counting sort
+    by row and an insertion sort of each row's ~2 k (V - 1) slots, timed call by call in the solve:
+    4 x 500 0.79 against 1.01 ms, 4 x 1000 1.73 against 1.90, 8 x 500 5.1-5.9 against 5.5-5.8, but
+    10 x 1000 22.9 against 20.4 (its 720 k slots scatter over more memory than the caches hold).
 
     Shapes: (M,) each -> rows, cols (E,) int64, cosine, ratio (E,) float32, rank, count (E,) int64.
     """
