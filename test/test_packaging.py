@@ -246,6 +246,7 @@ def test_colcon_build_ros2_run_layout(tmp_path, monkeypatch):
 #: or "pip:" for a documented pip dependency without a key).
 _RUNTIME_DEPENDENCIES = {
     "numpy": "python3-numpy", "cv2": "python3-opencv", "scipy": "python3-scipy", "numba": "python3-numba",
+    "llvmlite": "python3-numba",  # numba's own dependency, installed with it
     "threadpoolctl": "python3-threadpoolctl", "torch": "python3-torch",
     "matplotlib": "python3-matplotlib", "tqdm": "python3-tqdm", "rosbags": "pip:rosbags",
     "rclpy": "rclpy", "rcl_interfaces": "rcl_interfaces", "std_msgs": "std_msgs", "sensor_msgs": "sensor_msgs",
