@@ -17,7 +17,7 @@ from numba.extending import intrinsic
 
 __all__ = ["prefetch_row"]
 
-_LINE = 64  # bytes a cache line holds on the x86-64 and arm64 CPUs this runs on
+_LINE = 64  # bytes of a cache line on x86-64 (where lines are longer, some hints repeat)
 
 
 @intrinsic
