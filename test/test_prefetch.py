@@ -37,3 +37,16 @@ def test_only_two_dimensional_arrays_take_it():
 
     with pytest.raises(numba.core.errors.TypingError):
         one_dimensional(np.zeros(3))
+
+
+def test_the_hint_is_compiled_in():
+    """The loop's code holds the prefetch: in its LLVM IR, and on x86-64 as instructions."""
+    import platform
+
+    array = np.zeros((4, 32), np.float32)
+    _row_sums(array, 1)
+    signature = _row_sums.signatures[0]
+    assert "llvm.prefetch" in _row_sums.inspect_llvm(signature)
+    if platform.machine() == "x86_64":
+        asm = _row_sums.inspect_asm(signature)
+        assert any(line.strip().startswith("prefetch") for line in asm.splitlines())
