@@ -30,10 +30,12 @@ import torch
 
 from gcn_match_ros import solvers
 from gcn_match_ros.allocator import keep_freed_memory
-from gcn_match_ros.data.synthetic import random_scene_problem, rome16k
 from gcn_match_ros.experiments import resident_memory_mb, results_header, write_results
 from gcn_match_ros.libc import c_function
 from gcn_match_ros.stream import StreamState, solve_window
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stage_breakdown import rig_window  # noqa: E402  (the same window as its stream rows)
 
 REPO = Path(__file__).resolve().parents[1]
 ROW = 100  # windows a row
@@ -66,8 +68,7 @@ def main(argv=None) -> int:
     if args.windows < ROW:
         ap.error(f"--windows must be at least {ROW}")
     keep_freed_memory()
-    problem = random_scene_problem(rome16k(args.cameras, n_points=args.keypoints), rng=0)
-    problem.camera_ids = tuple(f"cam{v}" for v in range(args.cameras))
+    problem = rig_window(args.cameras, args.keypoints)
     solver, state = solvers.create(args.solver), StreamState()
     full_passes = []
     gc.callbacks.append(lambda phase, info: full_passes.append(1) if phase == "stop" and info["generation"] == 2 else None)
