@@ -1,0 +1,91 @@
+"""Problems solved by the package as it was at an earlier git revision: before/after on the same windows.
+
+A goal such as "generated scenes unchanged or better" compares today's solver with the one of the
+day the goal was set. Re-creating that solver from today's code is not possible (its code changed,
+not only its model), so :func:`solve_at_revision` takes the revision's own ``gcn_match_ros``
+(``git archive``), writes the problems in the problem-format contract (shared/spec/problem-format.md:
+keys are added, never changed, so an older package reads today's files), solves them in a separate
+Python process that imports that package, and reads the results back. The revision must have the
+re-split layout (``solvers.create``, ``problem.load_problem`` / ``save_result``: since issue 10).
+A core module: it never imports ROS.
+"""
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+from pathlib import Path
+from typing import List, Sequence, Union
+
+from .problem import Problem, Result, load_result, save_problem
+
+__all__ = ["REPO", "solve_at_revision", "split_revision"]
+
+#: The git checkout this package lives in.
+REPO = Path(__file__).resolve().parents[1]
+
+# Runs in the child process, with the revision's package first on sys.path.
+_SOLVE = """
+import sys, glob, os
+import torch
+from gcn_match_ros import solvers
+from gcn_match_ros.problem import load_problem, save_result
+torch.set_num_threads(1)
+spec, src, out = sys.argv[1:4]
+solver = solvers.create(spec)
+files = sorted(glob.glob(os.path.join(src, "*.npz")))
+for i, f in enumerate(files):
+    save_result(solver.solve(load_problem(f)), os.path.join(out, os.path.basename(f)))
+    if (i + 1) % 20 == 0 or i + 1 == len(files):
+        print(f"  {spec} at the revision: {i + 1}/{len(files)} problems", file=sys.stderr, flush=True)
+"""
+
+
+def split_revision(method: str):
+    """``"SPEC@REV"`` -> (SPEC, REV); a method without ``@`` -> (method, None)."""
+    spec, at, revision = method.rpartition("@")
+    if not at:
+        return method, None
+    if not spec or not revision:
+        raise ValueError(f"'{method}': write SPEC@REVISION, e.g. gcn@a482093")
+    return spec, revision
+
+
+def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
+                      repo: Union[str, Path] = REPO) -> List[Result]:
+    """Each problem solved by solver ``spec`` of the package at git ``revision`` of ``repo``.
+
+    Args:
+        spec: a solver spec as that revision reads it (``solvers.create``), e.g. ``"gcn"``.
+        revision: anything ``git archive`` takes (a commit, a tag, ``HEAD~3``).
+        problems: the windows, in today's :class:`~gcn_match_ros.problem.Problem`.
+        repo: the git checkout to take the revision from.
+
+    Returns:
+        one :class:`~gcn_match_ros.problem.Result` per problem, in order.
+
+    Raises:
+        ValueError: ``revision`` is not in ``repo`` (git's message).
+        RuntimeError: the revision's solver failed (its exit status; its messages went to stderr).
+    """
+    archive = subprocess.run(["git", "-C", os.fspath(repo), "archive", "--format=tar", revision, "gcn_match_ros"],
+                             capture_output=True)
+    if archive.returncode:
+        raise ValueError(f"git archive {revision}: {archive.stderr.decode(errors='replace').strip()}")
+    with tempfile.TemporaryDirectory(prefix="gcn_match_revision_") as tmp:
+        tree, src, out = (Path(tmp) / d for d in ("tree", "problems", "results"))
+        for d in (tree, src, out):
+            d.mkdir()
+        with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
+            tar.extractall(tree, filter="data")
+        for i, problem in enumerate(problems):
+            save_problem(problem, src / f"{i:06d}.npz")
+        # cwd and PYTHONPATH put the revision's package before the installed (editable) one
+        env = {**os.environ, "PYTHONPATH": os.fspath(tree)}
+        run = subprocess.run([sys.executable, "-c", _SOLVE, spec, os.fspath(src), os.fspath(out)], cwd=tree, env=env)
+        if run.returncode:
+            raise RuntimeError(f"solver '{spec}' at {revision} exited with status {run.returncode}")
+        return [load_result(out / f"{i:06d}.npz") for i in range(len(problems))]

@@ -1,0 +1,81 @@
+"""Tests of gcn_match_ros.revision_solve: problems solved by the package of an earlier git revision."""
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gcn_match_ros.data import synthetic
+from gcn_match_ros.revision_solve import solve_at_revision, split_revision
+
+PROBLEM_MODULE = Path(__file__).resolve().parents[1] / "gcn_match_ros" / "problem.py"
+
+# A stand-in package: each revision's solver marks its results with its version, the spec it was
+# created with and the problem's size, so a test sees which package solved what.
+FAKE_SOLVERS = '''
+import numpy as np
+from .problem import Result
+VERSION = "{version}"
+class _Solver:
+    def __init__(self, spec):
+        if spec == "broken":
+            raise ValueError("no such solver")
+        self.spec = spec
+    def solve(self, problem):
+        n = problem.n_keypoints
+        return Result(track=np.full(n, -1), pair_rows=np.array([0]), pair_cols=np.array([n - 1]),
+                      pair_scores=np.array([0.5], np.float32), method=f"{{VERSION}}:{{self.spec}}:{{n}}")
+def create(spec):
+    return _Solver(spec)
+'''
+
+
+def _git(repo: Path, *args: str) -> None:
+    subprocess.run(["git", "-C", str(repo), "-c", "user.name=test", "-c", "user.email=test@example.org", *args],
+                   check=True, capture_output=True)
+
+
+@pytest.fixture(scope="module")
+def fake_repo(tmp_path_factory):
+    """A git repository whose package changed between its two commits (v1, then v2)."""
+    repo = tmp_path_factory.mktemp("fake_repo")
+    package = repo / "gcn_match_ros"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "problem.py").write_text(PROBLEM_MODULE.read_text())  # the contract both sides read
+    _git(repo, "init", "-q")
+    for version in ("v1", "v2"):
+        (package / "solvers.py").write_text(FAKE_SOLVERS.format(version=version))
+        _git(repo, "add", "-A")
+        _git(repo, "commit", "-q", "-m", version)
+    return repo
+
+
+def _problems():
+    return [synthetic.random_scene_problem(synthetic.preset("rome16k", views, "sift"), np.random.default_rng(views))
+            for views in (3, 4)]
+
+
+def test_split_revision_reads_spec_at_revision():
+    assert split_revision("gcn@a482093") == ("gcn", "a482093")
+    assert split_revision("gcn:threshold=0.3,verify=false@HEAD~2") == ("gcn:threshold=0.3,verify=false", "HEAD~2")
+    assert split_revision("gcn:threshold=0.3") == ("gcn:threshold=0.3", None)
+    for bad in ("@HEAD", "gcn@"):
+        with pytest.raises(ValueError, match="SPEC@REVISION"):
+            split_revision(bad)
+
+
+def test_each_revision_solves_with_its_own_package(fake_repo):
+    problems = _problems()
+    for revision, version in (("HEAD", "v2"), ("HEAD~1", "v1")):
+        results = solve_at_revision("gcn:x=1", revision, problems, repo=fake_repo)
+        assert [r.method for r in results] == [f"{version}:gcn:x=1:{p.n_keypoints}" for p in problems]
+        for r, p in zip(results, problems):  # the problems arrived whole, results came back in order
+            assert r.pair_cols.tolist() == [p.n_keypoints - 1] and r.track.shape == (p.n_keypoints,)
+
+
+def test_unknown_revision_and_failing_solver_are_named(fake_repo):
+    with pytest.raises(ValueError, match="git archive no-such-revision"):
+        solve_at_revision("gcn", "no-such-revision", _problems(), repo=fake_repo)
+    with pytest.raises(RuntimeError, match="solver 'broken' at HEAD exited with status 1"):
+        solve_at_revision("broken", "HEAD", _problems(), repo=fake_repo)
