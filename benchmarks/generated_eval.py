@@ -42,8 +42,9 @@ VIEWS = (3, 4, 6)
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--methods", default="gcn", help="solver specs separated by ';' (the first is the reference); SPEC@REVISION: "
-                         "solved by the package at that git revision")
+    ap.add_argument("--methods", default="gcn",
+                    help="solver specs separated by ';' (the first is the reference); SPEC@REVISION: solved by "
+                         "the package at that git revision")
     ap.add_argument("--seeds", type=int, default=6, help="windows per preset and size")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds [11, first..first+seeds-1]: windows other than the goal's (0..), to choose on")

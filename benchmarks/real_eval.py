@@ -45,7 +45,9 @@ def main(argv=None):
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "real_eval.md"))
     ap.add_argument("--detectors", default="", help="default sift,orb (--quick: sift)")
     ap.add_argument("--methods", default="", help="comma-separated, or separated by ';' when a spec has several "
-                    "settings (gcn:verify=false,threshold=0.3); default: all solvers + " + ",".join(EXTRA))
+                    "settings (gcn:verify=false,threshold=0.3); SPEC@REVISION: solved by the package at that git "
+                    "revision (gcn@a482093: the day issues 11 and 12 were filed); default: all solvers + "
+                    + ",".join(EXTRA))
     ap.add_argument("--all-windows", action="store_true",
                     help="every window of every scene, not the fixed subsample of experiments.windows()")
     ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")

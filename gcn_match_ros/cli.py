@@ -370,7 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="score methods on problem files and print a table")
     e.add_argument("problems", nargs="+", help="problem files or glob patterns")
     e.add_argument("--methods", default="nn,gcn",
-                   help="comma-separated methods; use ';' between methods whose settings contain commas")
+                   help="comma-separated methods; use ';' between methods whose settings contain commas; "
+                        "SPEC@REVISION: solved by the package at that git revision (before/after in one table)")
     e.add_argument("--json", type=Path, help="also write the per-problem scores as JSON")
     e.add_argument("--pr-plot", type=Path, help="write precision-recall curves (PNG)")
     e.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

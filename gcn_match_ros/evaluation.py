@@ -11,6 +11,10 @@ and — wherever the problem has cameras — against the true geometry, every pr
 (> 10 px) from the epipolar line, and pooled recall, a method's consistent pairs over the
 union of every evaluated method's consistent pairs. Labels of pose scenes confirm only part
 of the pairs a method predicts; the geometric scores see them all.
+
+A method written ``SPEC@REVISION`` is solved by the package as it was at that git revision
+(:mod:`.revision_solve`: before/after on the same problems and labels, in one table); it gets no
+warm-up, its seconds are that solve's own, and a problem it refuses stops the evaluation.
 """
 from __future__ import annotations
 
@@ -24,6 +28,7 @@ from tqdm import tqdm
 from .geometric_metrics import score_geometric
 from .metrics import SCORE_KEYS, mean_scores, pr_curve, reference_rows, score_result, scored_pairs
 from .problem import Problem, load_problem
+from .revision_solve import solve_at_revision, split_revision
 from . import solvers
 
 __all__ = ["evaluate", "format_table"]
@@ -53,21 +58,26 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
     for p in loaded:
         if p.gt_track is None and not p.has_poses:
             raise ValueError(f"problem '{p.name}' has neither gt_track nor cameras: cannot evaluate")
-    by_spec = {spec: solvers.create(spec) for spec in methods}
+    methods = list(dict.fromkeys(methods))  # a row a method
+    revisions = {m: split_revision(m) for m in methods}
+    by_spec = {m: solvers.create(m) for m, (_, revision) in revisions.items() if revision is None}
     report: Dict = {"problems": [p.name for p in loaded], "methods": {}}
     if loaded:
         for solver in by_spec.values():
             _warm_up(solver, loaded[0])
-    bar = tqdm(total=len(loaded) * len(by_spec), desc="eval", unit="solve", disable=not progress,
+    solved_at_revision = {m: solve_at_revision(spec, revision, loaded)
+                          for m, (spec, revision) in revisions.items() if revision is not None}
+    bar = tqdm(total=len(loaded) * len(methods), desc="eval", unit="solve", disable=not progress,
                leave=False)
     consistent_sets: Dict[str, Dict[str, set]] = {}
-    for spec, solver in by_spec.items():
+    for spec in methods:
+        solver = by_spec.get(spec)
         per_problem, skipped, pooled, geometric = {}, {}, [], []
         consistent_sets[spec] = {}
-        for p in loaded:
+        for i, p in enumerate(loaded):
             bar.set_postfix_str(f"{spec} {p.name}", refresh=False)
             try:
-                result = solver.solve(p)
+                result = solver.solve(p) if solver is not None else solved_at_revision[spec][i]
             except (ValueError, MemoryError) as exc:
                 skipped[p.name] = str(exc)
             else:
@@ -84,7 +94,8 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
                     consistent_sets[spec][p.name] = set((g.rows[g.consistent] * p.n_keypoints
                                                          + g.cols[g.consistent]).tolist())
             bar.update()
-        report["methods"][spec] = {"describe": solver.describe(), "per_problem": per_problem,
+        report["methods"][spec] = {"describe": solver.describe() if solver is not None else spec,
+                                   "per_problem": per_problem,
                                    "mean": mean_scores(per_problem.values()), "skipped": skipped,
                                    "pr": _pooled_pr(pooled)}
         if geometric:

@@ -190,3 +190,16 @@ def test_posed_problems_without_labels_are_scored_geometrically_only():
     assert "F1" not in entry["mean"] and entry["geometric"]["pairs"] > 0
     assert entry["geometric"]["pooled_recall"] == pytest.approx(1.0)  # the only method: the whole union
     assert "| nn |" in format_table(report)
+
+
+def test_a_method_at_a_git_revision_is_scored_beside_todays():
+    """``SPEC@REVISION`` is solved by that revision's package (revision_solve): the committed ``nn`` of
+    HEAD, in its own process, scores exactly as today's does in this one, in the same report."""
+    problems = easy_problems()
+    report = evaluate(problems, ["nn", "nn@HEAD", "nn"], progress=False, with_reference_rows=False)
+    assert list(report["methods"]) == ["nn", "nn@HEAD"]  # a row a method
+    today, past = report["methods"]["nn"], report["methods"]["nn@HEAD"]
+    assert past["describe"] == "nn@HEAD" and not past["skipped"]
+    for p in problems:
+        for key in ("P", "R", "F1", "AP"):
+            assert past["per_problem"][p.name][key] == today["per_problem"][p.name][key]
