@@ -3,8 +3,11 @@
 A window that waits while the worker is busy is replaced by a newer one (``superseded``);
 dropping windows alone hides the overload. :class:`KeypointBudget` instead lowers the number
 of keypoints per view the worker solves (each frame keeps its best-scored ones,
-:func:`gcn_match_ros.windowing.kept_rows`, the same rule as ``max_keypoints``): every
-superseded window cuts the budget by ``step`` down to ``floor``; once ``calm`` windows in a row
+:func:`gcn_match_ros.windowing.kept_rows`, the same rule as ``max_keypoints``): a solve during
+which windows were superseded cuts the budget by ``step`` down to ``floor``, once however many
+were (one slow window — a stream's first, which fits every camera pair's model — let three
+windows be superseded at 8 x 500 and cut the budget three times, to 432 keypoints for 40 windows,
+though the windows after it were solved in time); once ``calm`` windows in a row
 have been solved with at most ``slow_share`` of them taking ``spare`` of the input period or more,
 it goes back up by the same factor, up to the configured maximum. The cost of a window grows
 faster than linearly with its keypoints, so a modest cut restores the camera rate; the node
@@ -40,6 +43,7 @@ class KeypointBudget:
         self.current = self.full
         self.degraded_windows = 0
         self._recent: "collections.deque[bool]" = collections.deque(maxlen=self.calm)  # slow or not
+        self._cut_since_solved = False
 
     @property
     def enabled(self) -> bool:
@@ -53,17 +57,20 @@ class KeypointBudget:
         """A new maximum (``max_keypoints`` changed at run time): start from it again."""
         self.full = self.current = int(full)
         self._recent.clear()
+        self._cut_since_solved = False
 
     def behind(self) -> None:
-        """A window was superseded: solve fewer keypoints."""
-        if self.enabled:
+        """A window was superseded: solve fewer keypoints (once until the next window is solved)."""
+        if self.enabled and not self._cut_since_solved:
             self.current = max(self.floor, int(self.current * self.step))
+            self._cut_since_solved = True
         self._recent.clear()
 
     def solved(self, compute_s: float, period_s: float, degraded: bool) -> None:
         """A window was solved in ``compute_s``; windows arrive every ``period_s`` (0: unknown);
         ``degraded``: it was cut to the budget."""
         self.degraded_windows += bool(degraded)
+        self._cut_since_solved = False
         if not self.degraded or period_s <= 0:
             return
         self._recent.append(compute_s >= self.spare * period_s)

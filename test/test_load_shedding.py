@@ -5,13 +5,14 @@ from gcn_match_ros.load_shedding import KeypointBudget
 def test_the_budget_falls_when_behind_and_recovers_when_calm():
     b = KeypointBudget(full=1000, floor=200, step=0.75, calm=3)
     assert not b.degraded
-    for expected in (750, 562, 421, 315, 236, 200, 200):
+    for expected in (750, 562, 421, 315, 236, 200, 200):  # each slow solve let a window be superseded
         b.behind()
         assert b.current == expected
+        b.solved(0.15, 0.1, degraded=True)
     # solved with time to spare: back up one step per 3 calm windows
     for _ in range(3):
         b.solved(0.02, 0.1, degraded=True)
-    assert b.current == 267 and b.degraded_windows == 3
+    assert b.current == 267 and b.degraded_windows == 10
     # a slow window breaks the calm run (a quarter of 3 windows: none may be slow)
     b.solved(0.09, 0.1, degraded=True)
     b.solved(0.02, 0.1, degraded=True)
@@ -46,3 +47,19 @@ def test_a_disabled_budget_never_degrades():
     b.behind()
     b.reconfigure(800)
     assert b.current == 800 and not b.degraded
+
+
+def test_windows_superseded_during_one_solve_cut_the_budget_once():
+    """A stream's first window fits every camera pair's model (~0.3 s at 8 x 500): the two or three
+    windows superseded meanwhile are one overload, not three; the next slow solve cuts again."""
+    b = KeypointBudget(full=1024, floor=200, step=0.75, calm=20)
+    for _ in range(3):
+        b.behind()
+    assert b.current == 768
+    b.solved(0.3, 0.1, degraded=False)
+    b.behind()
+    b.behind()
+    assert b.current == 576
+    b.reconfigure(800)  # a new maximum starts over: its first overload cuts at once
+    b.behind()
+    assert b.current == 600
