@@ -5,9 +5,9 @@ dropping windows alone hides the overload. :class:`KeypointBudget` instead lower
 of keypoints per view the worker solves (each frame keeps its best-scored ones,
 :func:`gcn_match_ros.windowing.kept_rows`, the same rule as ``max_keypoints``): a solve during
 which windows were superseded cuts the budget by ``step`` down to ``floor``, once however many
-were (one slow window — a stream's first, which fits every camera pair's model — let three
-windows be superseded at 8 x 500 and cut the budget three times, to 432 keypoints for 40 windows,
-though the windows after it were solved in time); once ``calm`` windows in a row
+were (a stream's first window fits every camera pair's model, ~0.3 s at 8 x 500, and each window
+superseded meanwhile used to cut the budget again, though the windows after it were solved in
+time); once ``calm`` windows in a row
 have been solved with at most ``slow_share`` of them taking ``spare`` of the input period or more,
 it goes back up by the same factor, up to the configured maximum. The cost of a window grows
 faster than linearly with its keypoints, so a modest cut restores the camera rate; the node
