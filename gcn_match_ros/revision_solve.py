@@ -18,7 +18,7 @@ import sys
 import tarfile
 import tempfile
 from pathlib import Path
-from typing import List, Sequence, Union
+from typing import List, Optional, Sequence, Tuple, Union
 
 from .problem import Problem, Result, load_result, save_problem
 
@@ -44,7 +44,7 @@ for i, f in enumerate(files):
 """
 
 
-def split_revision(method: str):
+def split_revision(method: str) -> Tuple[str, Optional[str]]:
     """``"SPEC@REV"`` -> (SPEC, REV); a method without ``@`` -> (method, None)."""
     spec, at, revision = method.rpartition("@")
     if not at:
