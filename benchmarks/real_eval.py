@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from gcn_match_ros import solvers
+from gcn_match_ros import plots, solvers
 from gcn_match_ros.data.convert import POSE_LABELS, convert
 from gcn_match_ros.evaluation import evaluate, format_table
 from gcn_match_ros.experiments import DATA_ROOT, lead_lines, results_header, write_results, role, windows
@@ -53,6 +53,9 @@ def main(argv=None):
     ap.add_argument("--held-out-only", action="store_true", help="only the held-out test scenes' windows")
     ap.add_argument("--max-features", type=int, default=500,
                     help="keypoints per image; problems other than 500 are made into <data>/<detector>_<N>")
+    ap.add_argument("--figure", action="store_true",
+                    help="also draw each held-out table's label F1 against geometric precision on every pair "
+                         "(<out stem>_<detector>.png beside --out)")
     ap.add_argument("--pose-labels", choices=POSE_LABELS, default="geometric",
                     help="ground truth of the Strecha pose scenes (data.convert.make_problem); photometric "
                          "problems are made into <problem folder>_photometric")
@@ -114,6 +117,14 @@ def main(argv=None):
                         cells.append(f"{k} {sum(v) / len(v):.3f}" if v else f"{k} –")
                     out.append(f"- {e['describe']}: " + ", ".join(cells))
                 out.extend(lead_lines(rep, ps, subsets))
+                if args.figure:
+                    points = {e["describe"]: (e["geometric"]["precision"], e["mean"]["F1"])
+                              for e in rep["methods"].values() if "geometric" in e}
+                    fig = plots.plot_labels_against_geometry(
+                        points, Path(args.out).with_name(f"{Path(args.out).stem}_{det}.png"),
+                        title=f"{det.upper()}, held out: F1 on the labels (all {len(ps)} windows)\nagainst "
+                              "geometric precision (castle-P19, every pair)")
+                    out.append(f"\nFigure: {fig.name}")
             print("\n".join(out[-4:]), flush=True)
     out.append(f"\nTotal wall time {time.time() - t0:.0f} s.")
     out.append("matchals and pgdds (default settings, ~11 s and ~30 s a problem) ran on the held-out SIFT 3-view "

@@ -31,7 +31,7 @@ import numpy as np
 from .graph import CorrespondenceGraph
 from .problem import Problem
 
-__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_landmark_map", "plot_similarity",
+__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_labels_against_geometry", "plot_landmark_map", "plot_similarity",
            "similarity_order", "cross_view_similarities", "plot_similarity_histograms"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
@@ -219,6 +219,30 @@ def plot_reliability(thresholds: Sequence[float], shares: Mapping[str, Sequence[
         axc.legend(fontsize=8)
     if title:
         fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path, dpi=120)
+
+
+def plot_labels_against_geometry(points: Mapping[str, Tuple[float, float]], path, title: str = "") -> Path:
+    """Each method's F1 on the labels against its geometric precision on every predicted pair, to
+    a PNG: where labels score only some of the pairs (pose scenes), a method can gain label F1 with
+    pairs the true cameras call impossible, and the two scores together show it.
+
+    Args:
+        points: method -> (geometric precision, label F1), both in [0, 1] (NaN: not drawn).
+    """
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for name, (x, y) in points.items():
+        if np.isfinite(x) and np.isfinite(y):
+            ax.scatter([x], [y], s=45, label=name)  # a legend, not labels: near points' names would overlap
+    ax.set_xlabel("geometric precision (every predicted pair, true cameras)")
+    ax.set_ylabel("F1 on the labels")
+    ax.set_xlim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    if title:
+        ax.set_title(title, fontsize=9)
     fig.tight_layout()
     return _save(fig, path, dpi=120)
 

@@ -193,3 +193,8 @@ def test_plot_stage_times(tmp_path):
     assert_png(plots.plot_stage_times(windows, tmp_path / "stages.png", title="per stage"))
     wall = {"4 x 500": {"nn": 7.0, "gcn (stream)": 14.0}, "8 x 500": {"nn": 28.0}}  # gcn: two threads
     assert_png(plots.plot_stage_times(windows, tmp_path / "stages_wall.png", wall=wall))
+
+
+def test_plot_labels_against_geometry(tmp_path):
+    points = {"gcn": (0.912, 0.846), "gcn@a482093": (0.403, 0.873), "no cameras": (float("nan"), 0.5)}
+    assert_png(plots.plot_labels_against_geometry(points, tmp_path / "labels_geometry.png", title="SIFT"))
