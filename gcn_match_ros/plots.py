@@ -31,8 +31,9 @@ import numpy as np
 from .graph import CorrespondenceGraph
 from .problem import Problem
 
-__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_labels_against_geometry", "plot_landmark_map", "plot_similarity",
-           "similarity_order", "cross_view_similarities", "plot_similarity_histograms"]
+__all__ = ["load_history", "plot_history", "plot_pr_curves", "plot_reliability", "plot_labels_against_geometry",
+           "plot_landmark_map", "plot_similarity", "similarity_order", "cross_view_similarities",
+           "plot_similarity_histograms"]
 
 RunLike = Union[str, Path, Mapping[str, Any]]
 _TERMS = ("loss", "recon", "epipolar", "edge")
