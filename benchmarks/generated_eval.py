@@ -67,6 +67,9 @@ def main(argv=None) -> int:
         else:
             print(f"{m}: solving the {len(problems)} windows with the package at {revision}", flush=True)
             results[m] = solve_at_revision(spec, revision, problems)
+            refused = [r for r in results[m] if isinstance(r, Exception)]
+            if refused:
+                raise SystemExit(f"{m} refused {len(refused)} generated windows: {refused[0]}")
     rows = []
     per_window = {(preset, m): [] for preset in PRESETS for m in specs}  # F1 of every window
     at = 0

@@ -14,7 +14,7 @@ of the pairs a method predicts; the geometric scores see them all.
 
 A method written ``SPEC@REVISION`` is solved by the package as it was at that git revision
 (:mod:`.revision_solve`: before/after on the same problems and labels, in one table); it gets no
-warm-up, its seconds are that solve's own, and a problem it refuses stops the evaluation.
+warm-up, its seconds are that solve's own, and a problem it refuses there is skipped like any other.
 """
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
         for i, p in enumerate(loaded):
             bar.set_postfix_str(f"{spec} {p.name}", refresh=False)
             try:
-                result = solver.solve(p) if solver is not None else solved_at_revision[spec][i]
+                result = solver.solve(p) if solver is not None else _solved(solved_at_revision[spec][i])
             except (ValueError, MemoryError) as exc:
                 skipped[p.name] = str(exc)
             else:
@@ -109,6 +109,14 @@ def evaluate(problems: Sequence[ProblemLike], methods: Sequence[str], progress: 
                                       "mean": mean_scores([r[row] for r in refs]), "skipped": {},
                                       "reference": True}
     return report
+
+
+def _solved(result):
+    """A result solved at another revision, or the refusal it stands for raised
+    (:func:`.revision_solve.solve_at_revision`)."""
+    if isinstance(result, Exception):
+        raise result
+    return result
 
 
 def _warm_up(solver, problem: Problem) -> None:

@@ -38,7 +38,14 @@ spec, src, out = sys.argv[1:4]
 solver = solvers.create(spec)
 files = sorted(glob.glob(os.path.join(src, "*.npz")))
 for i, f in enumerate(files):
-    save_result(solver.solve(load_problem(f)), os.path.join(out, os.path.basename(f)))
+    name = os.path.join(out, os.path.basename(f))
+    try:
+        result = solver.solve(load_problem(f))
+    except (ValueError, MemoryError) as exc:  # a refused problem, as evaluation records it
+        with open(name + ".refused", "w") as refused:
+            refused.write(f"{type(exc).__name__}: {exc}")
+    else:
+        save_result(result, name)
     if (i + 1) % 20 == 0 or i + 1 == len(files):
         print(f"  {spec} at the revision: {i + 1}/{len(files)} problems", file=sys.stderr, flush=True)
 """
@@ -55,7 +62,7 @@ def split_revision(method: str) -> Tuple[str, Optional[str]]:
 
 
 def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
-                      repo: Union[str, Path] = REPO) -> List[Result]:
+                      repo: Union[str, Path] = REPO) -> List[Union[Result, ValueError]]:
     """Each problem solved by solver ``spec`` of the package at git ``revision`` of ``repo``.
 
     Args:
@@ -65,7 +72,9 @@ def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
         repo: the git checkout to take the revision from.
 
     Returns:
-        one :class:`~gcn_match_ros.problem.Result` per problem, in order.
+        one :class:`~gcn_match_ros.problem.Result` per problem, in order; a problem the solver refused
+        there (ValueError or MemoryError, as :func:`gcn_match_ros.evaluation.evaluate` records a refusal)
+        has a ValueError with that message in its place.
 
     Raises:
         ValueError: ``revision`` is not in ``repo`` (git's message).
@@ -88,4 +97,9 @@ def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
         run = subprocess.run([sys.executable, "-c", _SOLVE, spec, os.fspath(src), os.fspath(out)], cwd=tree, env=env)
         if run.returncode:
             raise RuntimeError(f"solver '{spec}' at {revision} exited with status {run.returncode}")
-        return [load_result(out / f"{i:06d}.npz") for i in range(len(problems))]
+        return [_read(out / f"{i:06d}.npz") for i in range(len(problems))]
+
+
+def _read(path: Path) -> Union[Result, ValueError]:
+    refused = path.with_name(path.name + ".refused")
+    return ValueError(refused.read_text()) if refused.exists() else load_result(path)

@@ -23,6 +23,8 @@ class _Solver:
         self.spec = spec
     def solve(self, problem):
         n = problem.n_keypoints
+        if self.spec == "refuse-large" and n > 300:
+            raise ValueError(f"{{n}} keypoints are too many")
         return Result(track=np.full(n, -1), pair_rows=np.array([0]), pair_cols=np.array([n - 1]),
                       pair_scores=np.array([0.5], np.float32), method=f"{{VERSION}}:{{self.spec}}:{{n}}")
 def create(spec):
@@ -79,3 +81,10 @@ def test_unknown_revision_and_failing_solver_are_named(fake_repo):
         solve_at_revision("gcn", "no-such-revision", _problems(), repo=fake_repo)
     with pytest.raises(RuntimeError, match="solver 'broken' at HEAD exited with status 1"):
         solve_at_revision("broken", "HEAD", _problems(), repo=fake_repo)
+
+
+def test_a_problem_refused_at_the_revision_comes_back_as_its_error(fake_repo):
+    small, large = _problems()  # 240 and 320 keypoints
+    solved, refused = solve_at_revision("refuse-large", "HEAD", [small, large], repo=fake_repo)
+    assert solved.method == f"v2:refuse-large:{small.n_keypoints}"
+    assert isinstance(refused, ValueError) and str(refused) == "ValueError: 320 keypoints are too many"
