@@ -43,7 +43,7 @@ for i, f in enumerate(files):
         result = solver.solve(load_problem(f))
     except (ValueError, MemoryError) as exc:  # a refused problem, as evaluation records it
         with open(name + ".refused", "w") as refused:
-            refused.write(f"{type(exc).__name__}: {exc}")
+            refused.write(str(exc) or type(exc).__name__)
     else:
         save_result(result, name)
     if (i + 1) % 20 == 0 or i + 1 == len(files):

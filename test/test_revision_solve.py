@@ -87,4 +87,4 @@ def test_a_problem_refused_at_the_revision_comes_back_as_its_error(fake_repo):
     small, large = _problems()  # 240 and 320 keypoints
     solved, refused = solve_at_revision("refuse-large", "HEAD", [small, large], repo=fake_repo)
     assert solved.method == f"v2:refuse-large:{small.n_keypoints}"
-    assert isinstance(refused, ValueError) and str(refused) == "ValueError: 320 keypoints are too many"
+    assert isinstance(refused, ValueError) and str(refused) == "320 keypoints are too many"
