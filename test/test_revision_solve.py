@@ -1,12 +1,13 @@
 """Tests of gcn_match_ros.revision_solve: problems solved by the package of an earlier git revision."""
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gcn_match_ros.data import synthetic
-from gcn_match_ros.revision_solve import solve_at_revision, split_revision
+from gcn_match_ros.revision_solve import package_tree, solve_at_revision, split_revision
 
 PROBLEM_MODULE = Path(__file__).resolve().parents[1] / "gcn_match_ros" / "problem.py"
 
@@ -77,7 +78,7 @@ def test_each_revision_solves_with_its_own_package(fake_repo):
 
 
 def test_unknown_revision_and_failing_solver_are_named(fake_repo):
-    with pytest.raises(ValueError, match="git archive no-such-revision"):
+    with pytest.raises(ValueError, match="git rev-parse no-such-revision"):
         solve_at_revision("gcn", "no-such-revision", _problems(), repo=fake_repo)
     with pytest.raises(RuntimeError, match="solver 'broken' at HEAD exited with status 1"):
         solve_at_revision("broken", "HEAD", _problems(), repo=fake_repo)
@@ -88,3 +89,18 @@ def test_a_problem_refused_at_the_revision_comes_back_as_its_error(fake_repo):
     solved, refused = solve_at_revision("refuse-large", "HEAD", [small, large], repo=fake_repo)
     assert solved.method == f"v2:refuse-large:{small.n_keypoints}"
     assert isinstance(refused, ValueError) and str(refused) == "320 keypoints are too many"
+
+
+def test_a_commit_is_extracted_once_per_process_and_removed_at_exit(fake_repo):
+    head = subprocess.run(["git", "-C", str(fake_repo), "rev-parse", "HEAD"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    tree = package_tree("HEAD", fake_repo)
+    assert package_tree(head, fake_repo) == tree  # the same commit by another name: not extracted again
+    assert 'VERSION = "v2"' in (tree / "gcn_match_ros" / "solvers.py").read_text()
+    older = package_tree("HEAD~1", fake_repo)
+    assert older != tree and 'VERSION = "v1"' in (older / "gcn_match_ros" / "solvers.py").read_text()
+    # a process's trees go when it exits
+    child = subprocess.run([sys.executable, "-c", "import sys; from gcn_match_ros.revision_solve import package_tree; "
+                            "print(package_tree('HEAD', sys.argv[1]))", str(fake_repo)],
+                           capture_output=True, text=True, check=True)
+    assert child.stdout.strip() and not Path(child.stdout.strip()).exists()
