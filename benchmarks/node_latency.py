@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import random
 import subprocess
 import sys
 import tempfile
@@ -312,21 +311,11 @@ def ros_environment(args):
     Returns:
         (env, domain id, a line naming the Fast DDS set-up).
     """
-    from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, use_large_shm
+    from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, local_session_env
 
-    env = dict(os.environ)
-    if not args.default_shm:
-        use_large_shm(env)  # for the node and for this process (set below, before rclpy.init)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    domain = int(env.get("ROS_DOMAIN_ID") or random.SystemRandom().randint(1, 100))
-    env["ROS_DOMAIN_ID"] = str(domain)
-    env.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="node_latency-roslog-"))
-    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
-                       + ((FASTDDS_PROFILE_ENV,) if env.get(FASTDDS_PROFILE_ENV) else ())})
+    env, domain = local_session_env("node_latency-roslog-", large_shm=not args.default_shm)
     shm = ("Fast DDS profile " + env[FASTDDS_PROFILE_ENV]) if env.get(FASTDDS_PROFILE_ENV) else \
         "Fast DDS defaults (512 KiB shared-memory segment)"
-    os.environ.pop("ROS_LOCALHOST_ONLY", None)
     return env, domain, shm
 
 

@@ -1,11 +1,13 @@
-"""Tests of gcn_match_ros.ros.dds: the large shared-memory Fast DDS profile and the environment pointing at it."""
+"""Tests of gcn_match_ros.ros.dds: the large shared-memory Fast DDS profile, the environment pointing at it,
+and a local session's environment."""
 import os
 import tempfile
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import pytest
 
-from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, large_shm_profile, use_large_shm
+from gcn_match_ros.ros.dds import FASTDDS_PROFILE_ENV, large_shm_profile, local_session_env, use_large_shm
 
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"
 
@@ -61,3 +63,41 @@ def test_use_large_shm_defaults_to_os_environ(temp_dir, monkeypatch):
         monkeypatch.delenv(name)
     path = use_large_shm()
     assert os.environ[FASTDDS_PROFILE_ENV] == str(path) and path.parent == temp_dir
+
+
+SESSION_KEYS = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY", "ROS_DOMAIN_ID", "ROS_LOG_DIR",
+                "FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+@pytest.fixture
+def session_environ(temp_dir, monkeypatch):
+    """os.environ without the session's variables (restored after the test)."""
+    for name in SESSION_KEYS:
+        monkeypatch.setenv(name, "")  # recorded, so the environment is restored after the test
+        monkeypatch.delenv(name)
+    return temp_dir
+
+
+def test_local_session_env_keeps_what_is_set_and_creates_nothing(session_environ, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    monkeypatch.setenv("ROS_LOG_DIR", "/var/log/mine")
+    monkeypatch.setenv("ROS_LOCALHOST_ONLY", "1")
+    env, domain = local_session_env("gcn_match_ros-test-", large_shm=False)
+    assert domain == 42 and env["ROS_DOMAIN_ID"] == "42" and env["ROS_LOG_DIR"] == "/var/log/mine"
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST" and "ROS_LOCALHOST_ONLY" not in env
+    assert FASTDDS_PROFILE_ENV not in env
+    assert list(session_environ.iterdir()) == []  # no log directory, no profile
+    # this process's own environment is the same
+    assert os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST" and "ROS_LOCALHOST_ONLY" not in os.environ
+    assert os.environ["ROS_DOMAIN_ID"] == "42" and os.environ["ROS_LOG_DIR"] == "/var/log/mine"
+
+
+def test_local_session_env_fills_in_a_domain_a_log_directory_and_the_profile(session_environ):
+    env, domain = local_session_env("gcn_match_ros-test-")
+    assert 1 <= domain <= 100 and env["ROS_DOMAIN_ID"] == os.environ["ROS_DOMAIN_ID"] == str(domain)
+    log_dir = Path(env["ROS_LOG_DIR"])
+    assert log_dir.is_dir() and log_dir.parent == session_environ and log_dir.name.startswith("gcn_match_ros-test-")
+    assert os.environ["ROS_LOG_DIR"] == str(log_dir)
+    profile = Path(env[FASTDDS_PROFILE_ENV])
+    assert profile.parent == session_environ and os.environ[FASTDDS_PROFILE_ENV] == str(profile)
+    assert sorted(p.name for p in session_environ.iterdir()) == sorted([log_dir.name, profile.name])

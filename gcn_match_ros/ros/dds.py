@@ -1,4 +1,4 @@
-"""Fast DDS and large Keypoints messages.
+"""Fast DDS and large Keypoints messages; the environment of a session kept on this machine.
 
 Fast DDS carries same-host traffic through a shared-memory segment of 512 KiB per
 participant by default. A process that publishes several cameras' Keypoints at once
@@ -11,16 +11,19 @@ larger segment and points ``FASTRTPS_DEFAULT_PROFILES_FILE`` at it (unless the u
 a profile of their own). It only adds a same-host transport: with
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the rmw still configures discovery and UDP
 as before, so nothing more leaves the machine. The publishing process must have it set
-before its first ``rclpy.init`` (the segment is the writer's).
+before its first ``rclpy.init`` (the segment is the writer's). :func:`local_session_env` sets
+up a process that starts ROS processes of its own (the demo, the node benchmark): that, this
+machine only, a domain and a log directory.
 """
 from __future__ import annotations
 
 import os
+import random
 import tempfile
 from pathlib import Path
-from typing import MutableMapping, Optional
+from typing import Dict, MutableMapping, Optional, Tuple
 
-__all__ = ["FASTDDS_PROFILE_ENV", "large_shm_profile", "use_large_shm"]
+__all__ = ["FASTDDS_PROFILE_ENV", "large_shm_profile", "local_session_env", "use_large_shm"]
 
 #: Environment variable Fast DDS (2.x, ROS 2 Jazzy) reads its default XML profile from.
 FASTDDS_PROFILE_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"
@@ -70,3 +73,28 @@ def use_large_shm(env: Optional[MutableMapping[str, str]] = None, segment_mb: in
     path = large_shm_profile(segment_mb)
     env[FASTDDS_PROFILE_ENV] = str(path)
     return path
+
+
+def local_session_env(log_prefix: str, large_shm: bool = True) -> Tuple[Dict[str, str], int]:
+    """The environment for ROS processes this one starts, and this one's own (set here, so before
+    its ``rclpy.init``): ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (no traffic leaves the machine;
+    the deprecated ``ROS_LOCALHOST_ONLY`` removed), ``ROS_DOMAIN_ID`` as set, else a random domain
+    1-100 of the session's own; ``ROS_LOG_DIR`` as set, else a new temporary directory named
+    ``log_prefix``...; and, with ``large_shm``, the large shared-memory profile (:func:`use_large_shm`).
+
+    Returns:
+        (the child processes' environment, the domain id).
+    """
+    env = dict(os.environ)
+    if large_shm:
+        use_large_shm(env)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    domain = int(env.get("ROS_DOMAIN_ID") or random.SystemRandom().randint(1, 100))
+    env["ROS_DOMAIN_ID"] = str(domain)
+    if not env.get("ROS_LOG_DIR"):
+        env["ROS_LOG_DIR"] = tempfile.mkdtemp(prefix=log_prefix)
+    own = ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
+    os.environ.update({k: env[k] for k in own + ((FASTDDS_PROFILE_ENV,) if env.get(FASTDDS_PROFILE_ENV) else ())})
+    os.environ.pop("ROS_LOCALHOST_ONLY", None)
+    return env, domain

@@ -23,11 +23,8 @@ from __future__ import annotations
 
 import argparse
 import collections
-import os
-import random
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -53,7 +50,7 @@ from ..stamps import stamp_to_ns
 from ..stream import solve_stream
 from ..track_image import draw_tracks
 from .conversions import match_window_to_arrays
-from .dds import FASTDDS_PROFILE_ENV, use_large_shm
+from .dds import local_session_env
 from .matcher_node import create_solver
 from .spin import stop_node_process
 from .testing import RosSession, diagnostic_values
@@ -310,17 +307,9 @@ def main(argv=None) -> int:
     _log(f"demo: {bag.name}: {contents.n_frames} frames of {len(cameras)} cameras ({', '.join(cameras)}), "
          f"{expected} windows; solver {args.solver}")
 
-    env = dict(os.environ)
-    use_large_shm(env)  # bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.pop("ROS_LOCALHOST_ONLY", None)
-    env.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
-    env.setdefault("ROS_LOG_DIR", tempfile.mkdtemp(prefix="gcn_match_ros-demo-roslog-"))
+    # the large segment: bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
+    env, domain = local_session_env("gcn_match_ros-demo-roslog-")
     env["PYTHONUNBUFFERED"] = "1"
-    os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR")
-                       + ((FASTDDS_PROFILE_ENV,) if env.get(FASTDDS_PROFILE_ENV) else ())})
-    os.environ.pop("ROS_LOCALHOST_ONLY", None)
-    domain = int(env["ROS_DOMAIN_ID"])
     out = args.out or ((REPO / "out") if (REPO / "setup.py").is_file() else Path.cwd() / "out") / "demo_matches.png"
     node_log = out.parent / "demo_matcher_node.log"
     out.parent.mkdir(parents=True, exist_ok=True)
