@@ -153,7 +153,9 @@ def test_torchrun_cli(tmp_path):
     run = tmp_path / "run"
     env = dict(os.environ, OMP_NUM_THREADS="1", GLOO_SOCKET_IFNAME="lo", PYTHONPATH=str(REPO))
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nnodes=1", "--nproc_per_node=2",
-           "--master_addr=127.0.0.1", f"--master_port={_free_port()}", "-m", "gcn_match_ros.cli", "train",
+           "--master_addr=127.0.0.1", f"--master_port={_free_port()}",
+           f"--log-dir={tmp_path / 'torchrun'}",  # else torchrun leaves a torchelastic_* directory in /tmp
+           "-m", "gcn_match_ros.cli", "train",
            "--train", "synth:easy:3", "-o", str(run), "--steps", "3", "--batch", "1", "--model-config", str(cfg)]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
