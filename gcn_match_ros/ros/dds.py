@@ -11,9 +11,9 @@ larger segment and points ``FASTRTPS_DEFAULT_PROFILES_FILE`` at it (unless the u
 a profile of their own). It only adds a same-host transport: with
 ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` the rmw still configures discovery and UDP
 as before, so nothing more leaves the machine. The publishing process must have it set
-before its first ``rclpy.init`` (the segment is the writer's). :func:`local_session_env` sets
-up a process that starts ROS processes of its own (the demo, the node benchmark): that, this
-machine only, a domain and a log directory.
+before its first ``rclpy.init`` (the segment is the writer's). :func:`local_session_env` is the
+environment of a process that starts ROS processes of its own (the demo, the node benchmark):
+the large segment, this machine only, a domain and a log directory.
 """
 from __future__ import annotations
 
@@ -79,8 +79,9 @@ def local_session_env(log_prefix: str, large_shm: bool = True) -> Tuple[Dict[str
     """The environment for ROS processes this one starts, and this one's own (set here, so before
     its ``rclpy.init``): ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (no traffic leaves the machine;
     the deprecated ``ROS_LOCALHOST_ONLY`` removed), ``ROS_DOMAIN_ID`` as set, else a random domain
-    1-100 of the session's own; ``ROS_LOG_DIR`` as set, else a new temporary directory named
-    ``log_prefix``...; and, with ``large_shm``, the large shared-memory profile (:func:`use_large_shm`).
+    1-100 of the session's own; ``ROS_LOG_DIR`` as set, else a new temporary directory whose name
+    starts with ``log_prefix``; and, with ``large_shm``, the large shared-memory profile
+    (:func:`use_large_shm`).
 
     Returns:
         (the child processes' environment, the domain id).
