@@ -18,7 +18,15 @@ from typing import Dict, Optional, Tuple
 import numpy as np
 
 __all__ = ["FormatError", "Problem", "Result", "load_problem", "save_problem",
-           "load_result", "save_result", "atomic_write"]
+           "load_result", "save_result", "atomic_write", "keypoint_range_fault", "descriptor_range_fault",
+           "intrinsics_fault", "MAX_ABS_PIXEL", "MAX_ABS_DESCRIPTOR", "IMAGE_MARGIN_PX"]
+
+#: Largest |pixel coordinate| accepted when the image size is unknown (no camera is that big).
+MAX_ABS_PIXEL = 1e5
+#: Largest |descriptor value| accepted (SIFT bytes <= 255, ORB bits, learned descriptors ~1).
+MAX_ABS_DESCRIPTOR = 1e6
+#: Keypoints may sit this far outside the image (sub-pixel refinement at the border).
+IMAGE_MARGIN_PX = 1.0
 
 
 class FormatError(ValueError):
@@ -46,6 +54,66 @@ def _check_shape(a: np.ndarray, shape: tuple, key: str) -> None:
 def _check_finite(a: np.ndarray, key: str) -> None:
     if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
         raise FormatError(f"'{key}': contains NaN or inf")
+
+
+# Finite values no camera or detector produces: the similarity of such descriptors overflows to
+# NaN, such coordinates or focal lengths make the two-view fits meaningless (a focal length of 0
+# makes the essential matrix's threshold infinite). One rule for problems and for frames
+# (:func:`gcn_match_ros.windowing.validate_frame`).
+
+def keypoint_range_fault(keypoints: np.ndarray, image_size: Optional[np.ndarray] = None) -> Optional[str]:
+    """Why keypoints cannot be pixels of a camera, or None when they can: outside the image (by more
+    than :data:`IMAGE_MARGIN_PX`) where its size is known, else a coordinate beyond
+    :data:`MAX_ABS_PIXEL`.
+
+    Shapes: keypoints (n, 2); image_size (2,) (width, height; a size that is not positive is
+    unknown) or (n, 2), each keypoint's image, or None.
+    """
+    kp = np.asarray(keypoints, np.float64)
+    if kp.size == 0:
+        return None
+    size = np.broadcast_to(np.asarray(image_size, np.float64), kp.shape) if image_size is not None \
+        else np.zeros(kp.shape)
+    known = np.all(size > 0, axis=1)
+    outside = known & np.any((kp < -IMAGE_MARGIN_PX) | (kp > size + IMAGE_MARGIN_PX), axis=1)
+    if outside.any():
+        i = int(np.flatnonzero(outside)[0])
+        return (f"{int(outside.sum())} keypoints outside their image (e.g. #{i} at {kp[i].tolist()} in a "
+                f"{int(size[i, 0])} x {int(size[i, 1])} image)")
+    far = ~known & np.any(np.abs(kp) > MAX_ABS_PIXEL, axis=1)
+    if far.any():
+        return (f"keypoint coordinates up to {np.abs(kp[far]).max():.3g} px (more than {MAX_ABS_PIXEL:.0e}: "
+                "not from a camera)")
+    return None
+
+
+def descriptor_range_fault(descriptors: np.ndarray) -> Optional[str]:
+    """Why descriptors cannot come from a detector (a value beyond :data:`MAX_ABS_DESCRIPTOR`), or None.
+
+    Shapes: descriptors (n, D).
+    """
+    d = np.asarray(descriptors)
+    largest = float(np.abs(d).max()) if d.size else 0.0
+    return f"descriptor values up to {largest:.3g} (more than {MAX_ABS_DESCRIPTOR:.0e})" \
+        if largest > MAX_ABS_DESCRIPTOR else None
+
+
+def intrinsics_fault(K: np.ndarray) -> Optional[str]:
+    """Why K is not a pinhole camera matrix, or None when it is: not finite, a focal length fx or fy
+    not positive, or a last row other than (0, 0, 1).
+
+    Shapes: K (3, 3), or (V, 3, 3) checked view by view.
+    """
+    K = np.asarray(K, np.float64)
+    if not np.all(np.isfinite(K)):
+        return "not finite"
+    for v, k in enumerate(K.reshape(-1, 3, 3)):
+        at = f" (view {v})" if K.ndim == 3 else ""
+        if not (k[0, 0] > 0 and k[1, 1] > 0):
+            return f"focal lengths fx = {k[0, 0]:.6g}, fy = {k[1, 1]:.6g}{at}: both must be positive"
+        if not np.allclose(k[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-6):
+            return f"last row {k[2].tolist()}{at}: must be (0, 0, 1)"
+    return None
 
 
 @dataclasses.dataclass
@@ -148,6 +216,13 @@ class Problem:
             setattr(self, key, arr)
         if (self.R is None) != (self.t is None):
             raise FormatError("'R' and 't' must be given together")
+        # magnitudes that make a solve meaningless; a camera's frames are also held to its image
+        # (windowing.validate_frame), a problem's keypoints may lie beside theirs (a test's scene)
+        for key, fault in (("keypoints", keypoint_range_fault(self.keypoints)),
+                           ("descriptors", descriptor_range_fault(self.descriptors)),
+                           ("K", intrinsics_fault(self.K) if self.K is not None else None)):
+            if fault:
+                raise FormatError(f"'{key}': {fault}")
         if self.gt_track is not None and np.any(self.gt_track < -2):
             raise FormatError("'gt_track': values must be >= -2")
         if self.camera_ids is not None:

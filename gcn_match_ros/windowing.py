@@ -30,7 +30,7 @@ from typing import Deque, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .problem import FormatError, Problem
+from .problem import FormatError, Problem, descriptor_range_fault, intrinsics_fault, keypoint_range_fault
 from .stamps import duration_ns
 
 __all__ = ["Frame", "FrameError", "WindowConfig", "WindowParameter", "window_parameters", "WindowAssembler", "trim_frame",
@@ -170,30 +170,12 @@ def kept_rows(n: int, scores: Optional[np.ndarray], max_keypoints: int) -> np.nd
     return np.arange(max_keypoints)
 
 
-#: Largest |pixel coordinate| accepted when the image size is unknown (no camera is that big).
-MAX_ABS_PIXEL = 1e5
-#: Largest |descriptor value| accepted (SIFT bytes <= 255, ORB bits, learned descriptors ~1).
-MAX_ABS_DESCRIPTOR = 1e6
-#: Keypoints may sit this far outside the image (sub-pixel refinement at the border).
-IMAGE_MARGIN_PX = 1.0
-
-
 def _check_ranges(kp: np.ndarray, desc: np.ndarray, image_size) -> None:
     """Raise ``out_of_range`` for keypoints or descriptors no camera produces (validate_frame)."""
-    if image_size is not None and len(image_size) == 2 and all(int(v) > 0 for v in image_size):
-        w, h = (float(v) for v in image_size)
-        lo, hi = -IMAGE_MARGIN_PX, np.array([w, h]) + IMAGE_MARGIN_PX
-        outside = np.any((kp < lo) | (kp > hi), axis=1)
-        if outside.any():
-            i = int(np.flatnonzero(outside)[0])
-            raise FrameError("out_of_range", f"{int(outside.sum())} keypoints outside the {int(w)} x {int(h)} image "
-                                             f"(e.g. #{i} at {kp[i].tolist()})")
-    elif np.abs(kp).max() > MAX_ABS_PIXEL:
-        raise FrameError("out_of_range", f"keypoint coordinates up to {np.abs(kp).max():.3g} px "
-                                         f"(more than {MAX_ABS_PIXEL:.0e}: not from a camera)")
-    if desc.size and np.abs(desc).max() > MAX_ABS_DESCRIPTOR:
-        raise FrameError("out_of_range", f"descriptor values up to {np.abs(desc).max():.3g} "
-                                         f"(more than {MAX_ABS_DESCRIPTOR:.0e})")
+    size = image_size if image_size is not None and len(image_size) == 2 else None
+    fault = keypoint_range_fault(kp, size) or descriptor_range_fault(desc)
+    if fault:
+        raise FrameError("out_of_range", fault)
 
 
 def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descriptor_dim: int = 0) -> Frame:
@@ -205,10 +187,12 @@ def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descript
 
     Raises:
         FrameError: with reason ``bad_shape``, ``count_mismatch``, ``non_finite``, ``empty``,
-            ``descriptor_dim``, ``bad_intrinsics`` or ``out_of_range`` (a keypoint outside the
-            image when its size is known, else beyond :data:`MAX_ABS_PIXEL`; a descriptor value
-            beyond :data:`MAX_ABS_DESCRIPTOR`: finite but meaningless, and the similarity of
-            such values overflows to NaN).
+            ``descriptor_dim``, ``bad_intrinsics`` (K not a finite (3, 3) pinhole matrix,
+            :func:`.problem.intrinsics_fault`; all zeros, ROS's "uncalibrated", drops K) or
+            ``out_of_range`` (a keypoint outside the image when its size is known, else beyond
+            :data:`.problem.MAX_ABS_PIXEL`; a descriptor value beyond
+            :data:`.problem.MAX_ABS_DESCRIPTOR`: finite but meaningless, and the similarity of
+            such values overflows to NaN; :func:`.problem.keypoint_range_fault`).
     """
     kp = np.asarray(frame.keypoints, dtype=np.float64)
     desc = np.asarray(frame.descriptors, dtype=np.float64)
@@ -232,8 +216,10 @@ def validate_frame(frame: Frame, config: Optional[WindowConfig] = None, descript
         K = np.asarray(K, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise FrameError("bad_intrinsics", f"K: expected a finite (3, 3) matrix, got shape {K.shape}")
-        if abs(np.linalg.det(K)) < 1e-12:
+        if not K.any():
             K = None  # all-zero CameraInfo.k: uncalibrated
+        elif fault := intrinsics_fault(K):
+            raise FrameError("bad_intrinsics", f"K: {fault}")
     clean = dataclasses.replace(frame, keypoints=kp, descriptors=desc, scales=scales, orientations=orient,
                                 scores=scores, K=K)
     if config is not None:

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from gcn_match_ros.problem import (FormatError, Problem, Result, load_problem, load_result, save_problem,
-                                   save_result)
+from gcn_match_ros.problem import (MAX_ABS_DESCRIPTOR, MAX_ABS_PIXEL, FormatError, Problem, Result,
+                                   descriptor_range_fault, intrinsics_fault, keypoint_range_fault, load_problem,
+                                   load_result, save_problem, save_result)
 
 from conftest import permuted_views_problem, reference_problem_path
 
@@ -37,6 +38,10 @@ def test_reference_problem_loads():
     (lambda a: a.update(descriptors=np.full((36, 16), np.nan, np.float32)), "descriptors"),
     (lambda a: a.update(keypoints=np.array(["x"] * 72).reshape(36, 2)), "keypoints"),
     (lambda a: a.update(K=np.zeros((2, 3, 3))), "K"),
+    # finite but meaningless: a similarity overflowing to NaN, an essential matrix's threshold px / 0
+    (lambda a: a["keypoints"].__setitem__(7, 1e30), "keypoints"),
+    (lambda a: a["descriptors"].__setitem__((3, 0), 2 * MAX_ABS_DESCRIPTOR), "descriptors"),
+    (lambda a: a.update(K=np.tile(np.diag([-500.0, 500.0, 1.0]), (3, 1, 1))), "K"),
 ])
 def test_malformed_files_name_the_key(tmp_path, change, key):
     arrays = _arrays(permuted_views_problem())
@@ -108,3 +113,26 @@ def test_camera_ids_name_every_view_and_follow_subsets():
     assert p.subset_views([1]).camera_ids == ("cam1",) and Problem(**kw).subset_views([1]).camera_ids is None
     with _pytest.raises(FormatError, match="camera_ids"):
         Problem(camera_ids=["cam0"], **kw)
+
+
+def test_range_faults_name_what_no_camera_or_detector_produces():
+    kp = np.array([[0.0, 0.0], [639.5, 479.0], [-0.5, 480.9]])
+    assert keypoint_range_fault(kp) is None and keypoint_range_fault(kp, np.array([640, 480])) is None
+    assert keypoint_range_fault(np.zeros((0, 2)), np.array([640, 480])) is None
+    assert "2 keypoints outside their image (e.g. #1 at [700.0, 0.0] in a 640 x 480 image)" == \
+        keypoint_range_fault(np.array([[1.0, 1.0], [700.0, 0.0], [3.0, -2.0]]), np.array([640, 480]))
+    # per keypoint: the first one's image is known and holds it, the second's size is unknown
+    sizes = np.array([[640, 480], [0, 0]])
+    assert keypoint_range_fault(np.array([[600.0, 400.0], [5000.0, 1.0]]), sizes) is None
+    assert "more than 1e+05" in keypoint_range_fault(np.array([[600.0, 400.0], [2 * MAX_ABS_PIXEL, 1.0]]), sizes)
+    assert descriptor_range_fault(np.full((2, 4), 255.0)) is None and descriptor_range_fault(np.zeros((0, 4))) is None
+    assert descriptor_range_fault(np.array([[0.0, -3e6]])) == "descriptor values up to 3e+06 (more than 1e+06)"
+
+
+def test_intrinsics_fault_knows_a_pinhole_matrix():
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
+    assert intrinsics_fault(K) is None and intrinsics_fault(np.stack([K, np.eye(3)])) is None
+    assert intrinsics_fault(np.diag([-500.0, 500.0, 1.0])) == "focal lengths fx = -500, fy = 500: both must be positive"
+    assert intrinsics_fault(np.stack([K, np.diag([500.0, 0.0, 1.0])])).endswith("(view 1): both must be positive")
+    assert intrinsics_fault(K * 2).startswith("last row [0.0, 0.0, 2.0]")
+    assert intrinsics_fault(np.full((3, 3), np.inf)) == "not finite"

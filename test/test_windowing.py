@@ -67,6 +67,8 @@ def test_too_few_views_dropped_and_counted():
     (dict(descriptors=np.zeros((5, 16))), "descriptor_dim"),
     (dict(scales=np.ones(3)), "bad_shape"),
     (dict(K=np.ones((2, 2))), "bad_intrinsics"),
+    (dict(K=np.diag([-500.0, 500.0, 1.0])), "bad_intrinsics"),  # a focal length of 0 on average
+    (dict(K=np.diag([0.0, 500.0, 1.0])), "bad_intrinsics"),     # singular, yet not ROS's all-zero "uncalibrated"
     (dict(stamp_ns=1.5e9), "bad_stamp"),
 ])
 def test_bad_frames_are_counted_never_raised(bad, reason):
@@ -177,7 +179,7 @@ def test_absurd_or_out_of_image_keypoints_and_descriptors_are_refused():
     window as a solver error; it is refused per frame instead, with its own reason."""
     import dataclasses
 
-    from gcn_match_ros.windowing import MAX_ABS_DESCRIPTOR, MAX_ABS_PIXEL
+    from gcn_match_ros.problem import MAX_ABS_DESCRIPTOR, MAX_ABS_PIXEL
 
     rng = np.random.default_rng(0)
     kp, desc = rng.uniform(0, 400, (10, 2)), rng.random((10, 8))
