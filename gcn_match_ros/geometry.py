@@ -349,8 +349,17 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def quat_to_matrix(q: Sequence[float]) -> np.ndarray:
-    """Quaternion (x, y, z, w) (normalised here) -> rotation matrix (3, 3)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    """Quaternion (x, y, z, w) (normalised here) -> rotation matrix (3, 3).
+
+    Raises:
+        ValueError: a quaternion that is not finite or of norm ~0 (no rotation: e.g. a driver's
+            all-zero "orientation unknown").
+    """
+    q = np.asarray(q, dtype=np.float64)
+    norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else float("nan")
+    if not norm > 1e-9:
+        raise ValueError(f"orientation {q.tolist()} is not a rotation (a finite quaternion of norm > 0)")
+    x, y, z, w = q / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -367,6 +376,14 @@ def rt_to_pose(R: np.ndarray, t: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 def pose_to_rt(position: Sequence[float], quat_xyzw: Sequence[float]) -> Tuple[np.ndarray, np.ndarray]:
     """A camera's pose in the world (position C, orientation R_wc) -> world→camera
-    ``R = R_wcᵀ``, ``t = −R C``."""
+    ``R = R_wcᵀ``, ``t = −R C``.
+
+    Raises:
+        ValueError: a position that is not finite, or an orientation that is no rotation
+            (:func:`quat_to_matrix`).
+    """
+    C = np.asarray(position, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(C)):
+        raise ValueError(f"position {C.tolist()} is not finite")
     R = quat_to_matrix(quat_xyzw).T
-    return R, -R @ np.asarray(position, dtype=np.float64).reshape(3)
+    return R, -R @ C

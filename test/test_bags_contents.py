@@ -55,3 +55,13 @@ def test_round_trip_frames_labels_windows(tmp_path, storage, name):
 
 def test_window_labels_singletons_become_unmatched():
     np.testing.assert_array_equal(contents.window_labels(np.array([5, 5, 7, -1, -2, 9])), [5, 5, -1, -1, -2, -1])
+
+
+def test_a_pose_that_is_none_is_a_bag_error_naming_its_message(tmp_path):
+    frames, labels = synthetic_frames()
+    bad = frames["cam1"][2]
+    frames["cam1"][2] = dataclasses.replace(bad, t=np.array([0.0, np.nan, 1.0]))
+    path = contents.write_scene_bag(tmp_path / "nan_pose.mcap", frames, labels, label_method="test")
+    with pytest.raises(contents.BagError, match=r"malformed PoseStamped message on /cam1/pose at "
+                                                 rf"{bad.stamp_ns / 1e9:.9f}: position \[.*nan.*\] is not finite"):
+        contents.read_bag(path)

@@ -27,6 +27,16 @@ def test_pose_convention_round_trip():
         np.testing.assert_allclose(geometry.quat_to_matrix(geometry.matrix_to_quat(R)), R, atol=1e-12)
 
 
+def test_a_pose_that_is_none_is_refused():
+    # a quaternion a little off unit length is normalised, as ROS messages' often are
+    np.testing.assert_allclose(geometry.quat_to_matrix([0.0, 0.0, 0.0, 1.001]), np.eye(3), atol=1e-12)
+    for q in ([0.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 1.0], [0.0, np.inf, 0.0, 1.0]):
+        with pytest.raises(ValueError, match="is not a rotation"):
+            geometry.pose_to_rt([1.0, 2.0, 3.0], q)
+    with pytest.raises(ValueError, match=r"position \[1.0, nan, 3.0\] is not finite"):
+        geometry.pose_to_rt([1.0, np.nan, 3.0], [0.0, 0.0, 0.0, 1.0])
+
+
 def test_skew_is_cross_product():
     v, w = torch.randn(5, 3, dtype=D64), torch.randn(5, 3, dtype=D64)
     assert torch.allclose(skew(v) @ w[..., None], torch.linalg.cross(v, w)[..., None])

@@ -123,3 +123,36 @@ def test_held_out_errors_predict_a_new_view_from_the_map():
     behind = m.held_out_errors(np.array([7]), xy[2:], np.array([0]), K[None], np.diag([1.0, -1, -1])[None],
                                ts[2][None])
     assert np.isinf(behind).all()
+
+
+def test_a_window_with_a_pose_that_is_none_is_counted_not_mapped():
+    problems, _, stamps = rig_sequence(CFG, rng=4)
+    solved = list(solve_stream(solvers.create("nn"), problems[:2], stamps[:2]))
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
+        node = session.add_node(MappingNode(context=session.context, namespace=ns))
+        kp_pubs = {c: session.publisher(Keypoints, f"{c}/keypoints") for c in problems[0].camera_ids}
+        pose_pubs = {c: session.publisher(PoseStamped, f"{c}/pose") for c in problems[0].camera_ids}
+        matches = session.publisher(MatchWindow, "matches")
+        clouds = session.collect(PointCloud2, "mapping_node/landmarks")
+        assert session.spin_until(lambda: matches.get_subscription_count() > 0
+                                  and all(p.get_subscription_count() > 0 for p in kp_pubs.values()))
+        for k, (p, (result, landmarks), stamp) in enumerate(zip(problems, solved, stamps)):
+            frames = [Frame(camera_id=c, stamp_ns=stamp, keypoints=p.keypoints[p.view_slice(v)],
+                            descriptors=p.descriptors[p.view_slice(v)], K=p.K[v], image_size=(640, 480))
+                      for v, c in enumerate(p.camera_ids)]
+            for v, f in enumerate(frames):
+                kp_pubs[f.camera_id].publish(frame_to_keypoints(f))
+                pose = _pose(p.R[v], p.t[v], stamp)
+                if k == 0 and v == 1:  # a driver's all-zero "orientation unknown"
+                    pose.pose.orientation.x = pose.pose.orientation.y = pose.pose.orientation.z = 0.0
+                    pose.pose.orientation.w = 0.0
+                pose_pubs[f.camera_id].publish(pose)
+            assert session.spin_until(lambda: all(node._keypoints.find(c, stamp) is not None
+                                                  and node._poses.find(c, stamp) is not None for c in kp_pubs),
+                                      timeout=10)
+            matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
+                                                   landmark_ages=landmarks.ages_s))
+            assert session.spin_until(lambda: sum(node.counts.values()) >= k + 1, timeout=10)
+        assert session.spin_until(lambda: len(clouds) == 1, timeout=10)
+        assert node.counts["windows with an invalid pose"] == 1 and node.counts["maps published"] == 1

@@ -252,7 +252,8 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
         progress: tqdm bar; None = only for bags of more than 500 messages.
 
     Raises:
-        BagError: missing, truncated or corrupt bag, or labels that do not fit their frame.
+        BagError: missing, truncated or corrupt bag, a malformed Keypoints or PoseStamped message,
+            or labels that do not fit their frame.
     """
     with BagReader(path) as r:
         info = r.info()
@@ -288,7 +289,11 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
                 elif msgtype == POSE_TYPE:
                     msg = r.decode(raw, msgtype)
                     p, q = msg.pose.position, msg.pose.orientation
-                    poses[(ns, stamp_to_ns(msg.header.stamp))] = pose_to_rt([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+                    try:
+                        poses[(ns, stamp_to_ns(msg.header.stamp))] = pose_to_rt([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+                    except ValueError as exc:  # a NaN position, an all-zero quaternion
+                        raise BagError(f"{path}: malformed PoseStamped message on {topic} at "
+                                       f"{ns_to_seconds(stamp_to_ns(msg.header.stamp)):.9f}: {exc}") from None
                 else:
                     msg = r.decode(raw, msgtype)
                     labels[(str(msg.camera_id), stamp_to_ns(msg.header.stamp))] = (

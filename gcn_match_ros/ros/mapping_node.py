@@ -12,7 +12,8 @@ it: the reprojection error of every sighting of an already mapped landmark in th
 window (``held_out_px``: the last ``held_out_window`` of them; logged as median and share
 within 3 px) — what a consumer sees of wrong id continuations. Without poses it still reports
 landmark statistics (landmarks in the window, continued from the previous one, new; throttled
-log).
+log); a window with a pose that is none (a NaN position, an all-zero quaternion) is not mapped
+and counted (``windows with an invalid pose``).
 
 Callbacks only buffer (the last ``buffer`` keypoint and pose messages per camera); windows are
 processed in the MatchWindow callback, a bounded amount of work per window.
@@ -99,9 +100,14 @@ class MappingNode(Node):
             self.get_logger().info(f"{stats}; not mapped ({why or 'no pose or intrinsics for every view'})",
                                    throttle_duration_sec=_THROTTLE_S)
             return
-        Rt = [pose_to_rt([p.pose.position.x, p.pose.position.y, p.pose.position.z],
-                         [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w])
-              for p in poses]
+        try:
+            Rt = [pose_to_rt([p.pose.position.x, p.pose.position.y, p.pose.position.z],
+                             [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w])
+                  for p in poses]
+        except ValueError as exc:  # a NaN position, an all-zero quaternion: no sighting from it
+            self.counts["windows with an invalid pose"] += 1
+            self.get_logger().warning(f"{stats}; not mapped: {exc}", throttle_duration_sec=_THROTTLE_S)
+            return
         window = (w.landmark_ids, np.concatenate([f.keypoints for f in frames]), w.view_index,
                   np.stack([f.K for f in frames]), np.stack([r for r, _ in Rt]), np.stack([t for _, t in Rt]))
         self.held_out_px.extend(self.map.held_out_errors(*window).tolist())  # before the map has seen it
