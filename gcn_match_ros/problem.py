@@ -69,22 +69,22 @@ def keypoint_range_fault(keypoints: np.ndarray, image_size: Optional[np.ndarray]
     Shapes: keypoints (n, 2); image_size (2,) (width, height; a size that is not positive is
     unknown) or (n, 2), each keypoint's image, or None.
     """
-    kp = np.asarray(keypoints, np.float64)
+    kp = np.asarray(keypoints)
     if kp.size == 0:
         return None
-    size = np.broadcast_to(np.asarray(image_size, np.float64), kp.shape) if image_size is not None \
-        else np.zeros(kp.shape)
+    if image_size is None:  # every window's problem passes here: one pass, no copies but |kp|
+        far = float(np.abs(kp).max())
+        return None if far <= MAX_ABS_PIXEL else \
+            f"keypoint coordinates up to {far:.3g} px (more than {MAX_ABS_PIXEL:.0e}: not from a camera)"
+    kp = kp.astype(np.float64)
+    size = np.broadcast_to(np.asarray(image_size, np.float64), kp.shape)
     known = np.all(size > 0, axis=1)
     outside = known & np.any((kp < -IMAGE_MARGIN_PX) | (kp > size + IMAGE_MARGIN_PX), axis=1)
     if outside.any():
         i = int(np.flatnonzero(outside)[0])
         return (f"{int(outside.sum())} keypoints outside their image (e.g. #{i} at {kp[i].tolist()} in a "
                 f"{int(size[i, 0])} x {int(size[i, 1])} image)")
-    far = ~known & np.any(np.abs(kp) > MAX_ABS_PIXEL, axis=1)
-    if far.any():
-        return (f"keypoint coordinates up to {np.abs(kp[far]).max():.3g} px (more than {MAX_ABS_PIXEL:.0e}: "
-                "not from a camera)")
-    return None
+    return keypoint_range_fault(kp[~known]) if not known.all() else None
 
 
 def descriptor_range_fault(descriptors: np.ndarray) -> Optional[str]:
@@ -107,13 +107,16 @@ def intrinsics_fault(K: np.ndarray) -> Optional[str]:
     K = np.asarray(K, np.float64)
     if not np.all(np.isfinite(K)):
         return "not finite"
-    for v, k in enumerate(K.reshape(-1, 3, 3)):
-        at = f" (view {v})" if K.ndim == 3 else ""
-        if not (k[0, 0] > 0 and k[1, 1] > 0):
-            return f"focal lengths fx = {k[0, 0]:.6g}, fy = {k[1, 1]:.6g}{at}: both must be positive"
-        if not np.allclose(k[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-6):
-            return f"last row {k[2].tolist()}{at}: must be (0, 0, 1)"
-    return None
+    views = K.reshape(-1, 3, 3)
+    no_focal = ~((views[:, 0, 0] > 0) & (views[:, 1, 1] > 0))
+    bad_row = np.abs(views[:, 2] - (0.0, 0.0, 1.0)).max(axis=1) > 1e-6
+    if not (no_focal.any() or bad_row.any()):
+        return None
+    v = int(np.flatnonzero(no_focal | bad_row)[0])
+    k, at = views[v], (f" (view {v})" if K.ndim == 3 else "")
+    if no_focal[v]:
+        return f"focal lengths fx = {k[0, 0]:.6g}, fy = {k[1, 1]:.6g}{at}: both must be positive"
+    return f"last row {k[2].tolist()}{at}: must be (0, 0, 1)"
 
 
 @dataclasses.dataclass
@@ -216,8 +219,8 @@ class Problem:
             setattr(self, key, arr)
         if (self.R is None) != (self.t is None):
             raise FormatError("'R' and 't' must be given together")
-        # magnitudes that make a solve meaningless; a camera's frames are also held to its image
-        # (windowing.validate_frame), a problem's keypoints may lie beside theirs (a test's scene)
+        # only magnitudes that make a solve meaningless: frames from a camera are also held to its
+        # image (windowing.validate_frame); scenes made in code may project points past theirs
         for key, fault in (("keypoints", keypoint_range_fault(self.keypoints)),
                            ("descriptors", descriptor_range_fault(self.descriptors)),
                            ("K", intrinsics_fault(self.K) if self.K is not None else None)):
