@@ -242,9 +242,8 @@ def main(argv=None):
             lines += [f"Reliability of {m}'s published soft scores (> {SCORE_THRESHOLD}; each pair judged on its "
                       f"own): {'every' if met else 'NOT every'} share >= s\n"] + table + [""]
         if shares:
-            # one figure per detector: an ORB run must not overwrite the SIFT figures beside it
-            kind = "" if args.detector == "sift" else f"_{args.detector}"
-            fig = out.with_name(f"geometric_reliability{kind}{'_held_out' if held_out else ''}.png")
+            # named after the table: another run's table beside it (an ORB run, other methods) keeps its own
+            fig = out.with_name(f"{out.stem}_reliability{'_held_out' if held_out else ''}.png")
             plot_reliability(BINS, shares, fig, counts=counts, title=f"published scores vs geometric consistency: {title}")
             lines.append(f"Figure: {fig.name}\n")
     lines.append(f"Total wall time {time.time() - t0:.0f} s.")
