@@ -1,5 +1,6 @@
 """The example mapping node: MatchWindows with landmark ids + keypoints + camera poses -> a
 PointCloud2 of triangulated landmarks near the true points; without poses, statistics only."""
+import contextlib
 import uuid
 
 import numpy as np
@@ -39,32 +40,48 @@ def _pose(R, t, stamp_ns):
     return msg
 
 
+@contextlib.contextmanager
+def _mapping_session(cameras):
+    """A MappingNode in a namespace of its own, with publishers of every camera's keypoints and
+    pose and of the matches, and the landmark clouds it publishes."""
+    ns = f"/t{uuid.uuid4().hex[:10]}"
+    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
+        node = session.add_node(MappingNode(context=session.context, namespace=ns))
+        pubs = {c: (session.publisher(Keypoints, f"{c}/keypoints"), session.publisher(PoseStamped, f"{c}/pose"))
+                for c in cameras}
+        matches = session.publisher(MatchWindow, "matches")
+        clouds = session.collect(PointCloud2, "mapping_node/landmarks")
+        assert session.spin_until(lambda: matches.get_subscription_count() > 0
+                                  and all(k.get_subscription_count() > 0 for k, _ in pubs.values()))
+        yield session, node, pubs, matches, clouds
+
+
+def _publish_window(session, node, pubs, matches, problem, solved, stamp, pose=None):
+    """One window: every view's keypoints and pose (``pose(view, message)`` may change the pose
+    first), then — once the node holds them — its MatchWindow."""
+    result, landmarks = solved
+    frames = [Frame(camera_id=c, stamp_ns=stamp, keypoints=problem.keypoints[problem.view_slice(v)],
+                    descriptors=problem.descriptors[problem.view_slice(v)], K=problem.K[v], image_size=(640, 480))
+              for v, c in enumerate(problem.camera_ids)]
+    for v, f in enumerate(frames):
+        message = _pose(problem.R[v], problem.t[v], stamp)
+        if pose is not None:
+            pose(v, message)
+        pubs[f.camera_id][0].publish(frame_to_keypoints(f))
+        pubs[f.camera_id][1].publish(message)
+    # the keypoints and poses arrive first (waited for: a busy machine may take longer than a guess)
+    assert session.spin_until(lambda: all(node._keypoints.find(c, stamp) is not None
+                                          and node._poses.find(c, stamp) is not None for c in pubs), timeout=10)
+    matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids, landmark_ages=landmarks.ages_s))
+
+
 def test_the_map_holds_the_landmarks_near_the_true_points():
     problems, truth, stamps = rig_sequence(CFG, rng=3)
     X = _true_points(3)
     solved = list(solve_stream(solvers.create("gcn"), problems, stamps))
-    ns = f"/t{uuid.uuid4().hex[:10]}"
-    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
-        node = session.add_node(MappingNode(context=session.context, namespace=ns))
-        kp_pubs = {c: session.publisher(Keypoints, f"{c}/keypoints") for c in problems[0].camera_ids}
-        pose_pubs = {c: session.publisher(PoseStamped, f"{c}/pose") for c in problems[0].camera_ids}
-        matches = session.publisher(MatchWindow, "matches")
-        clouds = session.collect(PointCloud2, "mapping_node/landmarks")
-        assert session.spin_until(lambda: matches.get_subscription_count() > 0
-                                  and all(p.get_subscription_count() > 0 for p in kp_pubs.values()))
-        for k, (p, (result, landmarks), stamp) in enumerate(zip(problems, solved, stamps)):
-            frames = [Frame(camera_id=c, stamp_ns=stamp, keypoints=p.keypoints[p.view_slice(v)],
-                            descriptors=p.descriptors[p.view_slice(v)], K=p.K[v], image_size=(640, 480))
-                      for v, c in enumerate(p.camera_ids)]
-            for v, f in enumerate(frames):
-                kp_pubs[f.camera_id].publish(frame_to_keypoints(f))
-                pose_pubs[f.camera_id].publish(_pose(p.R[v], p.t[v], stamp))
-            # the keypoints and poses arrive first (waited for: a busy machine may take longer than a guess)
-            assert session.spin_until(lambda: all(node._keypoints.find(c, stamp) is not None
-                                                  and node._poses.find(c, stamp) is not None for c in kp_pubs),
-                                      timeout=10)
-            matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
-                                                   landmark_ages=landmarks.ages_s))
+    with _mapping_session(problems[0].camera_ids) as (session, node, pubs, matches, clouds):
+        for k, (p, window, stamp) in enumerate(zip(problems, solved, stamps)):
+            _publish_window(session, node, pubs, matches, p, window, stamp)
             assert session.spin_until(lambda: len(clouds) == k + 1, timeout=10)
         cloud = clouds[-1]
         assert cloud.header.frame_id == "world" and cloud.point_step == 20 and cloud.width > 50
@@ -128,31 +145,15 @@ def test_held_out_errors_predict_a_new_view_from_the_map():
 def test_a_window_with_a_pose_that_is_none_is_counted_not_mapped():
     problems, _, stamps = rig_sequence(CFG, rng=4)
     solved = list(solve_stream(solvers.create("nn"), problems[:2], stamps[:2]))
-    ns = f"/t{uuid.uuid4().hex[:10]}"
-    with RosSession("tester", namespace=ns, domain_id=domain_id()) as session:
-        node = session.add_node(MappingNode(context=session.context, namespace=ns))
-        kp_pubs = {c: session.publisher(Keypoints, f"{c}/keypoints") for c in problems[0].camera_ids}
-        pose_pubs = {c: session.publisher(PoseStamped, f"{c}/pose") for c in problems[0].camera_ids}
-        matches = session.publisher(MatchWindow, "matches")
-        clouds = session.collect(PointCloud2, "mapping_node/landmarks")
-        assert session.spin_until(lambda: matches.get_subscription_count() > 0
-                                  and all(p.get_subscription_count() > 0 for p in kp_pubs.values()))
-        for k, (p, (result, landmarks), stamp) in enumerate(zip(problems, solved, stamps)):
-            frames = [Frame(camera_id=c, stamp_ns=stamp, keypoints=p.keypoints[p.view_slice(v)],
-                            descriptors=p.descriptors[p.view_slice(v)], K=p.K[v], image_size=(640, 480))
-                      for v, c in enumerate(p.camera_ids)]
-            for v, f in enumerate(frames):
-                kp_pubs[f.camera_id].publish(frame_to_keypoints(f))
-                pose = _pose(p.R[v], p.t[v], stamp)
-                if k == 0 and v == 1:  # a driver's all-zero "orientation unknown"
-                    pose.pose.orientation.x = pose.pose.orientation.y = pose.pose.orientation.z = 0.0
-                    pose.pose.orientation.w = 0.0
-                pose_pubs[f.camera_id].publish(pose)
-            assert session.spin_until(lambda: all(node._keypoints.find(c, stamp) is not None
-                                                  and node._poses.find(c, stamp) is not None for c in kp_pubs),
-                                      timeout=10)
-            matches.publish(result_to_match_window(frames, result, landmark_ids=landmarks.ids,
-                                                   landmark_ages=landmarks.ages_s))
+
+    def unknown_orientation(view, message):  # a driver's all-zero "orientation unknown", in the first window
+        if view == 1:
+            o = message.pose.orientation
+            o.x = o.y = o.z = o.w = 0.0
+
+    with _mapping_session(problems[0].camera_ids) as (session, node, pubs, matches, clouds):
+        for k, (p, window, stamp) in enumerate(zip(problems, solved, stamps)):
+            _publish_window(session, node, pubs, matches, p, window, stamp, unknown_orientation if k == 0 else None)
             assert session.spin_until(lambda: sum(node.counts.values()) >= k + 1, timeout=10)
         assert session.spin_until(lambda: len(clouds) == 1, timeout=10)
         assert node.counts["windows with an invalid pose"] == 1 and node.counts["maps published"] == 1
