@@ -19,7 +19,8 @@ import numpy as np
 
 __all__ = ["FormatError", "Problem", "Result", "load_problem", "save_problem",
            "load_result", "save_result", "atomic_write", "keypoint_range_fault", "descriptor_range_fault",
-           "intrinsics_fault", "MAX_ABS_PIXEL", "MAX_ABS_DESCRIPTOR", "IMAGE_MARGIN_PX"]
+           "intrinsics_fault", "rotation_fault", "MAX_ABS_PIXEL", "MAX_ABS_DESCRIPTOR", "IMAGE_MARGIN_PX",
+           "ROTATION_TOLERANCE"]
 
 #: Largest |pixel coordinate| accepted when the image size is unknown (no camera is that big).
 MAX_ABS_PIXEL = 1e5
@@ -27,6 +28,8 @@ MAX_ABS_PIXEL = 1e5
 MAX_ABS_DESCRIPTOR = 1e6
 #: Keypoints may sit this far outside the image (sub-pixel refinement at the border).
 IMAGE_MARGIN_PX = 1.0
+#: Largest |R Rᵀ − I| entry of a rotation (the datasets' stored rotations: ~1e-6).
+ROTATION_TOLERANCE = 1e-4
 
 
 class FormatError(ValueError):
@@ -117,6 +120,23 @@ def intrinsics_fault(K: np.ndarray) -> Optional[str]:
     if no_focal[v]:
         return f"focal lengths fx = {k[0, 0]:.6g}, fy = {k[1, 1]:.6g}{at}: both must be positive"
     return f"last row {k[2].tolist()}{at}: must be (0, 0, 1)"
+
+
+def rotation_fault(R: np.ndarray) -> Optional[str]:
+    """Why R is not a rotation matrix (R Rᵀ = I within :data:`ROTATION_TOLERANCE`, det R = +1), or None
+    when it is: a world→camera pose with another R (a scaled K·R, a reflection) gives training's
+    epipolar loss and the geometric scores wrong cameras.
+
+    Shapes: R (3, 3), or (V, 3, 3) checked view by view.
+    """
+    views = np.asarray(R, np.float64).reshape(-1, 3, 3)
+    off = np.abs(np.einsum("vij,vkj->vik", views, views) - np.eye(3)).max(axis=(1, 2))
+    bad = (off > ROTATION_TOLERANCE) | (np.linalg.det(views) < 0)
+    if not bad.any():
+        return None
+    v = int(np.flatnonzero(bad)[0])
+    at = f" (view {v})" if np.ndim(R) == 3 else ""
+    return f"not a rotation{at}: |R Rᵀ - I| up to {off[v]:.3g}, det {np.linalg.det(views[v]):.6g}"
 
 
 @dataclasses.dataclass
@@ -223,7 +243,8 @@ class Problem:
         # image (windowing.validate_frame); scenes made in code may project points past theirs
         for key, fault in (("keypoints", keypoint_range_fault(self.keypoints)),
                            ("descriptors", descriptor_range_fault(self.descriptors)),
-                           ("K", intrinsics_fault(self.K) if self.K is not None else None)):
+                           ("K", intrinsics_fault(self.K) if self.K is not None else None),
+                           ("R", rotation_fault(self.R) if self.R is not None else None)):
             if fault:
                 raise FormatError(f"'{key}': {fault}")
         if self.gt_track is not None and np.any(self.gt_track < -2):

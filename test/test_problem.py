@@ -4,9 +4,10 @@ import pytest
 
 from gcn_match_ros.problem import (MAX_ABS_DESCRIPTOR, MAX_ABS_PIXEL, FormatError, Problem, Result,
                                    descriptor_range_fault, intrinsics_fault, keypoint_range_fault, load_problem,
+                                   rotation_fault,
                                    load_result, save_problem, save_result)
 
-from conftest import permuted_views_problem, reference_problem_path
+from conftest import permuted_views_problem, posed_problem, reference_problem_path
 
 
 def _arrays(problem: Problem) -> dict:
@@ -136,3 +137,17 @@ def test_intrinsics_fault_knows_a_pinhole_matrix():
     assert intrinsics_fault(np.stack([K, np.diag([500.0, 0.0, 1.0])])).endswith("(view 1): both must be positive")
     assert intrinsics_fault(K * 2).startswith("last row [0.0, 0.0, 2.0]")
     assert intrinsics_fault(np.full((3, 3), np.inf)) == "not finite"
+
+
+def test_rotation_fault_knows_a_rotation():
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    assert rotation_fault(R) is None and rotation_fault(np.stack([R, np.eye(3)])) is None
+    assert rotation_fault(R + 1e-6) is None  # a stored rotation's rounding
+    assert rotation_fault(2 * R).startswith("not a rotation: |R Rᵀ - I| up to 3")
+    reflection = np.diag([1.0, 1.0, -1.0])
+    assert rotation_fault(np.stack([R, reflection])).startswith("not a rotation (view 1)")
+    posed = posed_problem(np.random.default_rng(0))
+    with pytest.raises(FormatError, match="'R': not a rotation"):
+        Problem(view_offsets=posed.view_offsets, keypoints=posed.keypoints, descriptors=posed.descriptors,
+                K=posed.K, R=posed.R * 1.01, t=posed.t)
