@@ -37,6 +37,7 @@ from gcn_match_ros.experiments import (DATA_ROOT, GEOMETRIC_DEV_SCENES, GEOMETRI
                                        spaced_windows, write_results)
 from gcn_match_ros.geometric_metrics import chance_pass_rate, pairs_consistent, score_geometric, view_overlap
 from gcn_match_ros.plots import plot_reliability
+from gcn_match_ros.revision_solve import solve_at_revision, split_revision
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["gcn", "gcn:planar_threshold=0.5", "gcn:prefer_localised=false,planar_threshold=0.5",
@@ -64,7 +65,19 @@ def scene_depth_range(problems):
     return min(r[0] for r in ranges), max(r[1] for r in ranges)
 
 
+def _solved_at_revision(method, problems):
+    """The problems solved by ``SPEC@REVISION``'s own package (gcn_match_ros.revision_solve)."""
+    spec, revision = split_revision(method)
+    print(f"{method}: solving {len(problems)} windows with the package at {revision}", flush=True)
+    results = solve_at_revision(spec, revision, problems)
+    refused = [r for r in results if isinstance(r, Exception)]
+    if refused:
+        raise SystemExit(f"{method} refused {len(refused)} windows: {refused[0]}")
+    return results
+
+
 def evaluate_scene(name, args, made, rows, soft, chance):
+    """Every method of ``made`` (spec -> solver; None: solved at its git revision) on the scene's windows."""
     scene = load_scene(Path(args.data_root), name)
     cache = {}
     wins = spaced_windows(scene.n_views)
@@ -72,12 +85,13 @@ def evaluate_scene(name, args, made, rows, soft, chance):
         wins = wins[:: max(1, len(wins) // 3)][:3]
     problems = [make_problem(scene, win, args.detector, args.features, cache) for win in wins]
     depth = scene_depth_range(problems)
-    for win, p in zip(wins, problems):
+    at_revision = {m: _solved_at_revision(m, problems) for m, solver in made.items() if solver is None}
+    for i, (win, p) in enumerate(zip(wins, problems)):
         numbers = [int(scene.view_labels[v]) for v in win]
         overlap = view_overlap(p, depth)
         consistent_sets = {}
         for m, solver in made.items():
-            r = solver.solve(p)
+            r = at_revision[m][i] if solver is None else solver.solve(p)
             g = score_geometric(p, r, view_numbers=numbers)
             view = p.view_index
             none = np.array([max(overlap[a, b], overlap[b, a]) < OVERLAP_NONE
@@ -199,7 +213,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="3 windows a scene")
     ap.add_argument("--detector", default="sift", choices=("sift", "orb"))
     ap.add_argument("--features", type=int, default=500)
-    ap.add_argument("--methods", default=";".join(METHODS))
+    ap.add_argument("--methods", default=";".join(METHODS),
+                    help="solver specs separated by ';'; SPEC@REVISION: solved by the package at that git revision")
     ap.add_argument("--goals-for", default=None,
                     help="the methods whose issue-11 goals are judged, separated by ';', each one of --methods "
                          "(default: gcn, when it is one)")
@@ -211,7 +226,7 @@ def main(argv=None):
     goals_for = ["gcn"] if args.goals_for is None and "gcn" in methods else solvers.parse_method_list(args.goals_for or "")
     if set(goals_for) - set(methods):
         ap.error(f"--goals-for {sorted(set(goals_for) - set(methods))} not in --methods")
-    made = {m: solvers.create(m) for m in methods}
+    made = {m: None if split_revision(m)[1] else solvers.create(m) for m in methods}
     t0 = time.time()
     rows, soft, chance = [], defaultdict(list), defaultdict(lambda: [0, 0])
     for name in GEOMETRIC_DEV_SCENES + GEOMETRIC_HELD_OUT_SCENES:
