@@ -34,10 +34,10 @@ from gcn_match_ros.data.convert import make_problem
 from gcn_match_ros.data.labels import window_depth_range
 from gcn_match_ros.data.scenes import load_scene
 from gcn_match_ros.experiments import (DATA_ROOT, GEOMETRIC_DEV_SCENES, GEOMETRIC_HELD_OUT_SCENES, results_header,
-                                       spaced_windows, write_results)
+                                       solved_at_revision, spaced_windows, write_results)
 from gcn_match_ros.geometric_metrics import chance_pass_rate, pairs_consistent, score_geometric, view_overlap
 from gcn_match_ros.plots import plot_reliability
-from gcn_match_ros.revision_solve import solve_at_revision, split_revision
+from gcn_match_ros.revision_solve import split_revision
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["gcn", "gcn:planar_threshold=0.5", "gcn:prefer_localised=false,planar_threshold=0.5",
@@ -65,17 +65,6 @@ def scene_depth_range(problems):
     return min(r[0] for r in ranges), max(r[1] for r in ranges)
 
 
-def _solved_at_revision(method, problems):
-    """The problems solved by ``SPEC@REVISION``'s own package (gcn_match_ros.revision_solve)."""
-    spec, revision = split_revision(method)
-    print(f"{method}: solving {len(problems)} windows with the package at {revision}", flush=True)
-    results = solve_at_revision(spec, revision, problems)
-    refused = [r for r in results if isinstance(r, Exception)]
-    if refused:
-        raise SystemExit(f"{method} refused {len(refused)} windows: {refused[0]}")
-    return results
-
-
 def evaluate_scene(name, args, made, rows, soft, chance):
     """Every method of ``made`` (spec -> solver; None: solved at its git revision) on the scene's windows."""
     scene = load_scene(Path(args.data_root), name)
@@ -85,7 +74,7 @@ def evaluate_scene(name, args, made, rows, soft, chance):
         wins = wins[:: max(1, len(wins) // 3)][:3]
     problems = [make_problem(scene, win, args.detector, args.features, cache) for win in wins]
     depth = scene_depth_range(problems)
-    at_revision = {m: _solved_at_revision(m, problems) for m, solver in made.items() if solver is None}
+    at_revision = {m: solved_at_revision(m, problems) for m, solver in made.items() if solver is None}
     for i, (win, p) in enumerate(zip(wins, problems)):
         numbers = [int(scene.view_labels[v]) for v in win]
         overlap = view_overlap(p, depth)
@@ -223,7 +212,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     methods = solvers.parse_method_list(args.methods)
-    goals_for = ["gcn"] if args.goals_for is None and "gcn" in methods else solvers.parse_method_list(args.goals_for or "")
+    if args.goals_for is None:
+        goals_for = ["gcn"] if "gcn" in methods else []
+    else:
+        goals_for = solvers.parse_method_list(args.goals_for)
     if set(goals_for) - set(methods):
         ap.error(f"--goals-for {sorted(set(goals_for) - set(methods))} not in --methods")
     made = {m: None if split_revision(m)[1] else solvers.create(m) for m in methods}

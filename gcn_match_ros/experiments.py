@@ -35,13 +35,14 @@ from .data.convert import convert, make_problem
 from .data.scenes import DATA_ROOT, Scene, load_scene, read_gray
 from .detect import Features, extract_features
 from .metrics import count_pairs, paired_bootstrap
-from .problem import Problem
+from .problem import Problem, Result
+from .revision_solve import solve_at_revision, split_revision
 
 __all__ = ["DATA_ROOT", "TRAIN_SCENES", "SPLIT_AT", "SYNTHETIC_DESCRIPTORS", "WINDOWS", "GEOMETRIC_DEV_SCENES",
            "GEOMETRIC_HELD_OUT_SCENES", "spaced_windows", "geometric_validation_problems", "images_of", "split", "role",
            "windows", "problem_files", "first_pair_tracks", "pose_windows", "lead_lines", "cpu_name",
            "describe_machine", "command_line", "results_header", "write_results", "python_speed", "speed_note",
-           "run_note", "resident_memory_mb"]
+           "run_note", "resident_memory_mb", "solved_at_revision"]
 
 
 #: Scenes the shipped models are trained on (Strecha windows only below :data:`SPLIT_AT`).
@@ -235,6 +236,20 @@ def pose_windows(root: Path, scenes: Sequence[str], windows: Sequence[Sequence[i
                     image = read_gray(scene.image_paths[v])
                     cache[v] = (extract_features(image, detector, features), image)
             yield name, scene, list(win), [cache[v] for v in win]
+
+
+def solved_at_revision(method: str, problems: Sequence[Problem]) -> List[Result]:
+    """Every problem solved by ``method`` = ``SPEC@REVISION``, the package as it was at that git
+    revision (:func:`gcn_match_ros.revision_solve.solve_at_revision`), for a benchmark table that
+    needs every window: a refusal stops the benchmark, naming it (SystemExit).
+    """
+    spec, revision = split_revision(method)
+    print(f"{method}: solving {len(problems)} windows with the package at {revision}", flush=True)
+    results = solve_at_revision(spec, revision, problems)
+    refused = [r for r in results if isinstance(r, Exception)]
+    if refused:
+        raise SystemExit(f"{method} refused {len(refused)} of {len(problems)} windows: {refused[0]}")
+    return results
 
 
 def lead_lines(rep: Dict, problems: Sequence, subsets: Dict[str, Sequence[str]]) -> List[str]:

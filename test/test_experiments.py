@@ -183,3 +183,21 @@ def test_write_results_makes_the_folder_and_appends_below_a_rule(tmp_path, capsy
     write_results(out, "# third\n")
     assert out.read_text() == "# third\n"
     assert capsys.readouterr().out.count(f"written to {out}") == 3
+
+
+def test_solved_at_revision_returns_every_result_or_stops_naming_a_refusal(monkeypatch):
+    problems = [synthetic.random_scene_problem(synthetic.preset("easy", 3, "sift"), np.random.default_rng(s))
+                for s in range(3)]
+    calls = []
+
+    def fake(spec, revision, ps):
+        calls.append((spec, revision, len(ps)))
+        return [ValueError("too many keypoints") if p is problems[1] and spec == "refuse" else f"{spec}:{p.n_keypoints}"
+                for p in ps]
+
+    monkeypatch.setattr(experiments, "solve_at_revision", fake)
+    assert experiments.solved_at_revision("gcn:threshold=0.3@a482093", problems) == \
+        [f"gcn:threshold=0.3:{p.n_keypoints}" for p in problems]
+    with pytest.raises(SystemExit, match="refuse@HEAD refused 1 of 3 windows: too many keypoints"):
+        experiments.solved_at_revision("refuse@HEAD", problems)
+    assert calls == [("gcn:threshold=0.3", "a482093", 3), ("refuse", "HEAD", 3)]
