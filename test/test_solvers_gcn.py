@@ -156,6 +156,44 @@ def test_planar_ratio_follows_the_model_unless_set():
         solvers.create("gcn:planar_ratio=0")
 
 
+def test_untrusted_models_guide_candidates_only_when_asked(monkeypatch, one_torch_thread):
+    """trusted_candidates=false (the recall-first operating point, config/recall.yaml): a view pair
+    whose fitted model is not trusted (generated partial visibility: views 0 and 1 share few
+    points) gets guided candidates and geometric features from it; the other view pairs' candidates
+    are unchanged. With the verification, which checks against trusted models only, it is refused."""
+    import gcn_match_ros.solvers.gcn as gcn_module
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.candidates import EDGE_FEATURES
+
+    with pytest.raises(ValueError, match="needs verify=false"):
+        solvers.create("gcn:trusted_candidates=false")
+    problem = synthetic.random_scene_problem(synthetic.preset("partial", 4, "sift"), rng=0)
+    edges = []
+    real = gcn_module.edge_probabilities
+    monkeypatch.setattr(gcn_module, "edge_probabilities",
+                        lambda model, emb, es, **kw: edges.append(es) or real(model, emb, es, **kw))
+    trusted_solver = solvers.create("gcn:verify=false")
+    any_solver = solvers.create("gcn:verify=false,trusted_candidates=false")
+    assert (trusted_solver.edge_config.min_inliers, any_solver.edge_config.min_inliers) == (15, 0)
+    assert any_solver.edge_config == dataclasses.replace(trusted_solver.edge_config, min_inliers=0, min_inlier_ratio=0.0)
+    trusted_solver.solve(problem)
+    any_solver.solve(problem)
+    trusted, anything = edges
+    assert trusted.models[(0, 1)] is None and anything.models[(0, 1)] is not None
+    assert not anything.models[(0, 1)].trusted()
+    guided = EDGE_FEATURES.index("guided")
+    view = problem.view_index
+
+    def on_pair(es, a, b):
+        return (view[es.rows] == a) & (view[es.cols] == b)
+
+    assert trusted.features[on_pair(trusted, 0, 1), guided].sum() == 0
+    assert anything.features[on_pair(anything, 0, 1), guided].sum() > 0
+    for pair, model in trusted.models.items():
+        if model is not None:
+            np.testing.assert_array_equal(trusted.rows[on_pair(trusted, *pair)], anything.rows[on_pair(anything, *pair)])
+
+
 def test_graph_normalization_follows_the_model_unless_set():
     """The shipped models build their graph from the candidate edges' RootSIFT similarities
     (models/README.md), a checkpoint without that choice from the graph it was trained on."""

@@ -136,6 +136,15 @@ class GCNSolverConfig(SolverConfig):
             with repetitions (castle-P19's facades with SIFT, 0.8: geometric precision at
             separation 3 0.84 -> 0.86); off by default, as it takes a point inside a view for one
             seen there (generated scenes with partial visibility lose F1). 0: off.
+        trusted_candidates: guided candidates and the geometric edge features come only from view
+            pairs whose two-view model is trusted (the loaded model's ``min_inliers`` and
+            ``min_inlier_ratio``, :meth:`gcn_match_ros.edges.verify.PairModel.trusted`); an
+            untrusted model gives none. False: from any model the fit returns, as before issue 11
+            — with ``verify=false`` and ``threshold=0.3`` the recall-first operating point of the
+            day issues 11 and 12 were filed (``config/recall.yaml``: held-out ORB F1 / AP 0.737 /
+            0.768, the filing's solver 0.733 / 0.754: benchmarks/results/real_eval_operating_points.md;
+            with trusted models only 0.718 / 0.732: real_eval_filing.md). Needs ``verify=false``:
+            the verification checks pairs against trusted models only.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -167,6 +176,7 @@ class GCNSolverConfig(SolverConfig):
     planar_threshold: float = -1.0
     planar_ratio: float = -1.0
     support_threshold: float = 0.0
+    trusted_candidates: bool = True
     parallel: bool = True
     keep_apart: bool = True
 
@@ -188,6 +198,9 @@ class GCNSolverConfig(SolverConfig):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         check_ratio(self.epipolar_ratio)
+        if self.verify and not self.trusted_candidates:
+            raise ValueError("trusted_candidates=false needs verify=false: the verification checks pairs against "
+                             "trusted two-view models only")
         check_neighbourhood(self.neighbours, self.min_shared_neighbours)
         if not self.epipolar_fit_px > 0.0:
             raise ValueError(f"epipolar_fit_px must be > 0, got {self.epipolar_fit_px}")
@@ -317,9 +330,12 @@ class GCNSolver(Solver):
     @property
     def edge_config(self) -> EdgeConfig:
         """The candidate edges the loaded model was trained on, with this solver's epipolar
-        fit thresholds and H-vs-F choice (:attr:`planar_ratio`)."""
-        return dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px,
-                                   fine_px=self.config.epipolar_fine_px, planar_ratio=self.planar_ratio)
+        fit thresholds, H-vs-F choice (:attr:`planar_ratio`) and trust rule (``trusted_candidates``)."""
+        edges = dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px,
+                                    fine_px=self.config.epipolar_fine_px, planar_ratio=self.planar_ratio)
+        if not self.config.trusted_candidates:
+            edges = dataclasses.replace(edges, min_inliers=0, min_inlier_ratio=0.0)
+        return edges
 
     @property
     def planar_ratio(self) -> float:
