@@ -4,11 +4,12 @@ answers online (one window at a time) and offline (solve_stream)."""
 import dataclasses
 
 import numpy as np
+import pytest
 
 from gcn_match_ros import solvers
 from gcn_match_ros.data import synthetic
 from gcn_match_ros.edges.rig_memory import MAX_SKIPPED, RigMemory
-from gcn_match_ros.edges.verify import fit_pair, residuals
+from gcn_match_ros.edges.verify import MIN_INLIER_RATIO, MIN_INLIERS, fit_pair, residuals
 from gcn_match_ros import geometry
 from gcn_match_ros.stream import StreamState, solve_stream, solve_window
 
@@ -49,15 +50,18 @@ def test_a_model_that_still_holds_is_reused_without_a_fit():
     assert other.calls == 1 and len(rig) == 2
 
 
-def test_a_model_whose_geometry_changed_is_refitted_every_time():
+@pytest.mark.parametrize("trust", [(MIN_INLIERS, MIN_INLIER_RATIO), (0, 0.0)])
+def test_a_model_whose_geometry_changed_is_refitted_every_time(trust):
+    """Whatever the trust rule: (0, 0) is that of gcn:trusted_candidates=false (config/recall.yaml),
+    under which any fitted model is kept."""
     rng = np.random.default_rng(1)
     rig = RigMemory()
     w0 = _CountingFit(*_seeds(H_A, rng))
-    rig.model(("a", "b"), w0.xa, w0.xb, w0)
+    rig.model(("a", "b"), w0.xa, w0.xb, w0, *trust)
     # cameras on different robots: every window another relative pose
     for k, H in enumerate([H_B, H_A @ H_B, H_B @ H_B]):
         w = _CountingFit(*_seeds(H, rng))
-        model = rig.model(("a", "b"), w.xa, w.xb, w)
+        model = rig.model(("a", "b"), w.xa, w.xb, w, *trust)
         assert w.calls == 1, k  # never matched with the stale model
         assert rig.invalidated == k + 1 and rig.reused == 0
         assert residuals(model, w.xa[10:], w.xb[10:])[0].max() < 2.0  # the new geometry, not the old
@@ -138,6 +142,22 @@ def test_a_stream_reuses_models_and_answers_as_solve_stream():
     counts = (state.rig.fitted, state.rig.reused)
     solver.solve(dataclasses.replace(base, camera_ids=None), stream=state)
     assert (state.rig.fitted, state.rig.reused) == counts
+
+
+def test_the_recall_preset_answers_online_as_offline():
+    """gcn:trusted_candidates=false remembers untrusted models too: the node's windows and
+    solve_stream still agree."""
+    base = synthetic.random_scene_problem(synthetic.preset("partial", 4, "sift"), rng=np.random.default_rng(0))
+    windows = [dataclasses.replace(base, camera_ids=("c0", "c1", "c2", "c3"), name=f"w{k}") for k in range(3)]
+    spec = "gcn:verify=false,threshold=0.3,trusted_candidates=false"
+    state = StreamState()
+    solver = solvers.create(spec)
+    online = [solver.solve(w, stream=state) for w in windows]
+    assert len(state.rig) == 6 and state.rig.reused == 12  # every pair, views 0 and 1's untrusted model too
+    offline = [r for r, _ in solve_stream(solvers.create(spec), windows, stamps_ns=range(3))]
+    for a, b in zip(online, offline):
+        np.testing.assert_array_equal(a.track, b.track)
+        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
 
 
 def test_reused_models_match_as_well_as_fresh_fits():
