@@ -159,7 +159,7 @@ def main(argv=None) -> int:
         views, keypoints = (int(x) for x in cfg.lower().split("x"))
         for r in measure(args.solvers, views, keypoints, args.repeats):
             rows.append(r)
-            print(f"{views} x {keypoints}: {r['spec']}: {1e3 * r['total']:.1f} ms ({r['ratio']:.1f}x)", flush=True)
+            print(f"{views} x {keypoints}: {r['spec']}: {1e3 * r['total']:.1f} ms ({r['ratio']:.2f}x)", flush=True)
     head = ("| window | solver | " + " | ".join(STAGES) + " | total [ms] | x first | landmarks [ms] | "
             "with / without landmarks | peak RSS growth [MB] |")
     lines = [head, "|" + "---|" * (len(STAGES) + 7)]
@@ -168,7 +168,7 @@ def main(argv=None) -> int:
         lm = r["landmarks"]
         lm_cells = "– | –" if lm is None else f"{1e3 * lm:.1f} | {(r['total'] + lm) / r['total']:.2f}"
         lines.append(f"| {r['views']} x {r['keypoints'] // r['views']} | {r['spec']} | {cells} | "
-                     f"{1e3 * r['total']:.1f} | {r['ratio']:.1f} | {lm_cells} | {r['rss_growth']:.0f} |")
+                     f"{1e3 * r['total']:.1f} | {r['ratio']:.2f} | {lm_cells} | {r['rss_growth']:.0f} |")
     table = "\n".join(lines)
     print(table)
     windows, wall = {}, {}
