@@ -174,7 +174,7 @@ def test_untrusted_models_guide_candidates_only_when_asked(monkeypatch, one_torc
                         lambda model, emb, es, **kw: edges.append(es) or real(model, emb, es, **kw))
     trusted_solver = solvers.create("gcn:verify=false")
     any_solver = solvers.create("gcn:verify=false,trusted_candidates=false")
-    assert (trusted_solver.edge_config.min_inliers, any_solver.edge_config.min_inliers) == (15, 0)
+    assert trusted_solver.edge_config.min_inliers > 0  # the shipped model's trust rule
     assert any_solver.edge_config == dataclasses.replace(trusted_solver.edge_config, min_inliers=0, min_inlier_ratio=0.0)
     trusted_solver.solve(problem)
     any_solver.solve(problem)
