@@ -35,6 +35,7 @@ from .data.convert import convert, make_problem
 from .data.scenes import DATA_ROOT, Scene, load_scene, read_gray
 from .detect import Features, extract_features
 from .metrics import count_pairs, paired_bootstrap
+from .paths import CHECKOUT
 from .problem import Problem, Result
 from .revision_solve import solve_at_revision, split_revision
 
@@ -346,8 +347,8 @@ def command_line(script: Union[str, Path], argv: Optional[Sequence[str]] = None,
     bad = [k for k in env if not k.isidentifier()]
     if bad:
         raise ValueError(f"env takes variable names, got {bad}")
-    path, repo = Path(script).resolve(), Path(__file__).resolve().parents[1]
-    shown = path.relative_to(repo) if path.is_relative_to(repo) else Path(script)
+    path = Path(script).resolve()
+    shown = path.relative_to(CHECKOUT) if path.is_relative_to(CHECKOUT) else Path(script)
     args = list(sys.argv[1:] if argv is None else argv)
     prefix = [f"{k}={shlex.quote(os.environ[k])}" for k in env if k in os.environ]
     return " ".join(prefix + [launcher, shlex.join([str(shown)] + [str(a) for a in args])])

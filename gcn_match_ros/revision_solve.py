@@ -26,12 +26,11 @@ import tempfile
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
+from .paths import CHECKOUT
 from .problem import Problem, Result, load_result, save_problem
 
-__all__ = ["REPO", "package_tree", "solve_at_revision", "split_revision"]
+__all__ = ["package_tree", "solve_at_revision", "split_revision"]
 
-#: The git checkout this package lives in.
-REPO = Path(__file__).resolve().parents[1]
 #: (checkout, commit) -> that commit's package extracted, for the life of this process
 _TREES: Dict[Tuple[str, str], Path] = {}
 
@@ -70,7 +69,7 @@ def split_revision(method: str) -> Tuple[str, Optional[str]]:
 
 
 def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
-                      repo: Union[str, Path] = REPO) -> List[Union[Result, ValueError]]:
+                      repo: Union[str, Path] = CHECKOUT) -> List[Union[Result, ValueError]]:
     """Each problem solved by solver ``spec`` of the package at git ``revision`` of ``repo``.
 
     Args:
@@ -103,7 +102,7 @@ def solve_at_revision(spec: str, revision: str, problems: Sequence[Problem],
         return [_read(out / f"{i:06d}.npz") for i in range(len(problems))]
 
 
-def package_tree(revision: str, repo: Union[str, Path] = REPO) -> Path:
+def package_tree(revision: str, repo: Union[str, Path] = CHECKOUT) -> Path:
     """The directory holding ``gcn_match_ros`` as it was at ``revision`` of ``repo``: extracted
     (``git archive``) on the first call for that commit, the same directory on later ones; removed
     when the process exits.

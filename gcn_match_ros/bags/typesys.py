@@ -13,6 +13,8 @@ from typing import List, Tuple
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.interfaces import Nodetype
 
+from ..paths import CHECKOUT
+
 __all__ = ["BagError", "MSG_PACKAGE", "KEYPOINTS_TYPE", "LABELS_TYPE", "MATCH_WINDOW_TYPE", "CAMERA_INFO_TYPE",
            "POSE_TYPE", "HEADER_TYPE", "typestore", "ensure_type", "find_msg_file", "normalise_type", "has_header"]
 
@@ -24,7 +26,7 @@ MATCH_WINDOW_TYPE = "gcn_match_msgs/msg/MatchWindow"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 HEADER_TYPE = "std_msgs/msg/Header"
-_SRC_MSG_DIR = Path(__file__).resolve().parents[2] / "msg_defs" / "msg"
+_SRC_MSG_DIR = CHECKOUT / "msg_defs" / "msg"
 
 
 class BagError(ValueError):

@@ -20,11 +20,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
+from ..paths import CHECKOUT
+
 __all__ = ["DATA_ROOT", "DatasetError", "Scene", "read_gray", "read_oxford", "read_strecha", "read_middlebury", "load_scene",
            "available_scenes"]
 
 #: The scene folders of a checkout: ``shared/data`` beside the repository (the default root).
-DATA_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA_ROOT = CHECKOUT.parent / "shared" / "data"
 
 class DatasetError(ValueError):
     """A scene folder or ground-truth file is missing or malformed; the message names the file."""

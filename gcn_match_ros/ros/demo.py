@@ -42,6 +42,7 @@ from ..bags.io import BagError
 from ..data.scenes import DATA_ROOT
 from ..landmark_map import LandmarkMap
 from ..metrics import score_result
+from ..paths import CHECKOUT
 from ..plots import plot_landmark_map
 from ..problem import Problem, Result
 from ..rounding import relabel_tracks
@@ -55,13 +56,12 @@ from .matcher_node import create_solver
 from .spin import stop_node_process
 from .testing import RosSession, diagnostic_values
 
-REPO = Path(__file__).resolve().parents[2]
 CAMERAS = ("cam0", "cam1", "cam2")
 DEFAULT_BAG = "oxford_graf_sift.mcap"
 
 
 def _bag_dirs() -> List[Path]:
-    dirs = [REPO / "bags"]
+    dirs = [CHECKOUT / "bags"]
     try:  # an installed package (colcon / ament): <prefix>/share/gcn_match_ros/bags
         from ament_index_python.packages import get_package_share_directory
         dirs.append(Path(get_package_share_directory("gcn_match_ros")) / "bags")
@@ -211,7 +211,7 @@ def map_landmarks(windows: List[MatchWindow], problems: List[Problem], path: Pat
 
 def default_params_file() -> Optional[Path]:
     """config/matcher.yaml of this checkout, else of the installed package, else None."""
-    here = REPO / "config" / "matcher.yaml"
+    here = CHECKOUT / "config" / "matcher.yaml"
     if here.is_file():
         return here
     try:
@@ -310,7 +310,7 @@ def main(argv=None) -> int:
     # the large segment: bag_play publishes 3 cameras' ~200 KB frames at once (see gcn_match_ros.ros)
     env, domain = local_session_env("gcn_match_ros-demo-roslog-")
     env["PYTHONUNBUFFERED"] = "1"
-    out = args.out or ((REPO / "out") if (REPO / "setup.py").is_file() else Path.cwd() / "out") / "demo_matches.png"
+    out = args.out or ((CHECKOUT / "out") if (CHECKOUT / "setup.py").is_file() else Path.cwd() / "out") / "demo_matches.png"
     node_log = out.parent / "demo_matcher_node.log"
     out.parent.mkdir(parents=True, exist_ok=True)
 
@@ -328,7 +328,7 @@ def main(argv=None) -> int:
     _log(f"demo: starting the matcher node (parameters: {params_file or 'defaults'} + the demo's; "
          f"ROS_DOMAIN_ID={domain}, log: {node_log})")
     log_fh = open(node_log, "w")
-    node = subprocess.Popen(cmd, env=env, stdout=log_fh, stderr=subprocess.STDOUT, cwd=REPO)
+    node = subprocess.Popen(cmd, env=env, stdout=log_fh, stderr=subprocess.STDOUT, cwd=CHECKOUT)
     col = None
     player = None
     try:
@@ -349,7 +349,7 @@ def main(argv=None) -> int:
         player = subprocess.Popen([sys.executable, "-m", "gcn_match_ros.ros.bag_play", str(bag), "--restamp",
                                    "--rate", str(args.rate), "--quiet", "--topics", *topics,
                                    "--wait-for-subscribers", "2", "--wait-for-all-acked", "3"],
-                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=CHECKOUT)
         player_out: List[str] = []
         reader = threading.Thread(target=lambda: player_out.extend(player.stdout), daemon=True)
         reader.start()
