@@ -70,24 +70,22 @@ def keypoint_range_fault(keypoints: np.ndarray, image_size: Optional[np.ndarray]
     :data:`MAX_ABS_PIXEL`.
 
     Shapes: keypoints (n, 2); image_size (2,) (width, height; a size that is not positive is
-    unknown) or (n, 2), each keypoint's image, or None.
+    unknown) or None.
     """
     kp = np.asarray(keypoints)
     if kp.size == 0:
         return None
-    if image_size is None:  # every window's problem passes here: one pass, no copies but |kp|
+    size = None if image_size is None else np.asarray(image_size, np.float64)
+    if size is None or not np.all(size > 0):  # every window's problem passes here: one pass, no copies but |kp|
         far = float(np.abs(kp).max())
         return None if far <= MAX_ABS_PIXEL else \
             f"keypoint coordinates up to {far:.3g} px (more than {MAX_ABS_PIXEL:.0e}: not from a camera)"
-    kp = kp.astype(np.float64)
-    size = np.broadcast_to(np.asarray(image_size, np.float64), kp.shape)
-    known = np.all(size > 0, axis=1)
-    outside = known & np.any((kp < -IMAGE_MARGIN_PX) | (kp > size + IMAGE_MARGIN_PX), axis=1)
-    if outside.any():
-        i = int(np.flatnonzero(outside)[0])
-        return (f"{int(outside.sum())} keypoints outside their image (e.g. #{i} at {kp[i].tolist()} in a "
-                f"{int(size[i, 0])} x {int(size[i, 1])} image)")
-    return keypoint_range_fault(kp[~known]) if not known.all() else None
+    outside = np.any((kp < -IMAGE_MARGIN_PX) | (kp > size + IMAGE_MARGIN_PX), axis=1)
+    if not outside.any():
+        return None
+    i = int(np.flatnonzero(outside)[0])
+    return (f"{int(outside.sum())} keypoints outside their image (e.g. #{i} at {kp[i].tolist()} in a "
+            f"{int(size[0])} x {int(size[1])} image)")
 
 
 def descriptor_range_fault(descriptors: np.ndarray) -> Optional[str]:

@@ -122,10 +122,10 @@ def test_range_faults_name_what_no_camera_or_detector_produces():
     assert keypoint_range_fault(np.zeros((0, 2)), np.array([640, 480])) is None
     assert "2 keypoints outside their image (e.g. #1 at [700.0, 0.0] in a 640 x 480 image)" == \
         keypoint_range_fault(np.array([[1.0, 1.0], [700.0, 0.0], [3.0, -2.0]]), np.array([640, 480]))
-    # per keypoint: the first one's image is known and holds it, the second's size is unknown
-    sizes = np.array([[640, 480], [0, 0]])
-    assert keypoint_range_fault(np.array([[600.0, 400.0], [5000.0, 1.0]]), sizes) is None
-    assert "more than 1e+05" in keypoint_range_fault(np.array([[600.0, 400.0], [2 * MAX_ABS_PIXEL, 1.0]]), sizes)
+    # an image size that is not positive is unknown: only the magnitude is checked
+    unknown = np.array([0, 0])
+    assert keypoint_range_fault(np.array([[600.0, 400.0], [5000.0, 1.0]]), unknown) is None
+    assert "more than 1e+05" in keypoint_range_fault(np.array([[600.0, 400.0], [2 * MAX_ABS_PIXEL, 1.0]]), unknown)
     assert descriptor_range_fault(np.full((2, 4), 255.0)) is None and descriptor_range_fault(np.zeros((0, 4))) is None
     assert descriptor_range_fault(np.array([[0.0, -3e6]])) == "descriptor values up to 3e+06 (more than 1e+06)"
 
