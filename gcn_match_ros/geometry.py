@@ -22,7 +22,7 @@ __all__ = ["homogeneous", "skew", "camera_centers", "fundamental_from_poses", "e
            "epipolar_residuals", "sampson_distance", "epipolar_distances", "epipolar_distance_matrix", "transfer", "project",
            "unproject", "unproject_sightings", "triangulate_pair", "triangulate_views", "triangulate_checked",
            "refine_points", "matrix_to_quat", "quat_to_matrix",
-           "rt_to_pose", "pose_to_rt"]
+           "rt_to_pose", "pose_to_rt", "pose_msg_to_rt"]
 
 
 def homogeneous(xy: np.ndarray) -> np.ndarray:
@@ -387,3 +387,14 @@ def pose_to_rt(position: Sequence[float], quat_xyzw: Sequence[float]) -> Tuple[n
         raise ValueError(f"position {C.tolist()} is not finite")
     R = quat_to_matrix(quat_xyzw).T
     return R, -R @ C
+
+
+def pose_msg_to_rt(pose) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`pose_to_rt` of a ``geometry_msgs/Pose``: rclpy's message or a bag reader's (anything
+    with ``position.x/y/z`` and ``orientation.x/y/z/w``; the core imports no ROS).
+
+    Raises:
+        ValueError: as :func:`pose_to_rt` (a position that is not finite, no rotation).
+    """
+    p, q = pose.position, pose.orientation
+    return pose_to_rt([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])

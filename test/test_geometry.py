@@ -37,6 +37,18 @@ def test_a_pose_that_is_none_is_refused():
         geometry.pose_to_rt([1.0, np.nan, 3.0], [0.0, 0.0, 0.0, 1.0])
 
 
+def test_a_pose_message_is_read_as_its_fields():
+    from types import SimpleNamespace as NS
+
+    C, q = [1.0, 2.0, 3.0], geometry.matrix_to_quat(geometry.quat_to_matrix([0.1, -0.2, 0.3, 0.9]))
+    pose = NS(position=NS(x=C[0], y=C[1], z=C[2]), orientation=NS(x=q[0], y=q[1], z=q[2], w=q[3]))
+    for got, want in zip(geometry.pose_msg_to_rt(pose), geometry.pose_to_rt(C, q)):
+        np.testing.assert_array_equal(got, want)
+    pose.orientation = NS(x=0.0, y=0.0, z=0.0, w=0.0)  # a driver's "orientation unknown"
+    with pytest.raises(ValueError, match="is not a rotation"):
+        geometry.pose_msg_to_rt(pose)
+
+
 def test_skew_is_cross_product():
     v, w = torch.randn(5, 3, dtype=D64), torch.randn(5, 3, dtype=D64)
     assert torch.allclose(skew(v) @ w[..., None], torch.linalg.cross(v, w)[..., None])

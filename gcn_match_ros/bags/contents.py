@@ -52,7 +52,7 @@ from typing import Dict, Iterator, List, Mapping, NamedTuple, Optional, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from ..geometry import pose_to_rt
+from ..geometry import pose_msg_to_rt
 from ..stamps import ns_to_seconds, stamp_to_ns
 from ..problem import Problem
 from ..windowing import Frame, WindowAssembler, WindowConfig, kept_rows, window_problem
@@ -288,9 +288,8 @@ def read_bag(path, progress: Optional[bool] = None) -> BagContents:
                     lst.append(frame)
                 elif msgtype == POSE_TYPE:
                     msg = r.decode(raw, msgtype)
-                    p, q = msg.pose.position, msg.pose.orientation
                     try:
-                        poses[(ns, stamp_to_ns(msg.header.stamp))] = pose_to_rt([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
+                        poses[(ns, stamp_to_ns(msg.header.stamp))] = pose_msg_to_rt(msg.pose)
                     except ValueError as exc:  # a NaN position, an all-zero quaternion
                         raise BagError(f"{path}: malformed PoseStamped message on {topic} at "
                                        f"{ns_to_seconds(stamp_to_ns(msg.header.stamp)):.9f}: {exc}") from None

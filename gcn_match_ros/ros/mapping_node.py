@@ -31,7 +31,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from gcn_match_msgs.msg import Keypoints, MatchWindow
 
-from ..geometry import pose_to_rt
+from ..geometry import pose_msg_to_rt
 from ..landmark_map import LandmarkMap
 from .frame_buffer import StampBuffer, decoded_window, window_frames
 from .spin import run_node
@@ -101,9 +101,7 @@ class MappingNode(Node):
                                    throttle_duration_sec=_THROTTLE_S)
             return
         try:
-            Rt = [pose_to_rt([p.pose.position.x, p.pose.position.y, p.pose.position.z],
-                             [p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z, p.pose.orientation.w])
-                  for p in poses]
+            Rt = [pose_msg_to_rt(p.pose) for p in poses]
         except ValueError as exc:  # a NaN position, an all-zero quaternion: no sighting from it
             self.counts["windows with an invalid pose"] += 1
             self.get_logger().warning(f"{stats}; not mapped: {exc}", throttle_duration_sec=_THROTTLE_S)
