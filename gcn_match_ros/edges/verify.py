@@ -10,13 +10,13 @@ The epipolar model's fit threshold follows the keypoints' localisation. SIFT on 
 localises to 0.1-0.4 px; fitted at 2 px, a model there also explains repetitions shifted a few
 pixels off the true epipolar lines and tilts its lines towards them (castle-P19: ~4 degrees, a
 third of a view pair's pairs wrong). So F is fitted first at ``fine_px`` (0.5 px) and kept when
-it explains most of the seeds (at least :data:`MIN_INLIERS`, making at least
-:data:`FINE_MIN_INLIER_RATIO` of them) and the seeds show sub-pixel localisation: at least
-:data:`FINE_SHARE` of those within ``epipolar_px`` of the fine model lie within ``fine_px``
-(Gaussian noise of sigma gives ~erf(0.35 / sigma) / erf(1.41 / sigma): 0.99 at 0.2 px, 0.68 at
-0.5 px; measured per view pair on the windows of benchmarks/geometric_eval.py: SIFT 0.72-1.0;
-generated scenes with 1 px of noise 0.54-0.77). Otherwise F is fitted again at ``epipolar_px``. Repetitions 2-10 px off the true lines lie beyond the fine model's
-``epipolar_px`` and do not count against it.
+it explains at least half of the seeds (:data:`FINE_MIN_INLIER_RATIO`, and at least
+:data:`MIN_INLIERS`) and the seeds show sub-pixel localisation: at least :data:`FINE_SHARE` of
+those within ``epipolar_px`` of the fine model lie within ``fine_px`` (Gaussian noise of sigma
+gives ~erf(0.35 / sigma) / erf(1.41 / sigma): 0.99 at 0.2 px, 0.68 at 0.5 px; measured per view
+pair on the windows of benchmarks/geometric_eval.py: SIFT 0.72-1.0; generated scenes with 1 px of
+noise 0.54-0.77). Otherwise F is fitted again at ``epipolar_px``. Repetitions 2-10 px off the
+true lines lie beyond the fine model's ``epipolar_px`` and do not count against it.
 
 A fitted model is not yet a *trusted* one. A model fitted to a view pair that shares no
 scene (cameras pointing different ways) or to a repetitive facade still finds a handful of
