@@ -91,8 +91,10 @@ MOTION_PLANAR_RATIO = 0.95
 #: takes over most of what is left, and above the size where handing a chunk to the second
 #: thread costs more than it saves. A window below it is one chunk.
 SEARCH_CHUNK_PRODUCTS = 100_000
-#: keypoints a chunk holds at least: from a few rows on, a chunk's descriptor product is bitwise
-#: that of the whole window (one row is not: BLAS then takes a matrix-vector kernel)
+#: keypoints a chunk holds at least: a product of a few rows costs a call of its own for little
+#: work. Whether a chunk's product is bitwise the window's depends on the CPU's BLAS kernels (on
+#: some, from a few rows on; on an AMD EPYC VM's OpenBLAS no row slice is); the chunks are fixed by
+#: the window, so a window's result does not depend on who takes them either way.
 SEARCH_CHUNK_ROWS = 64
 #: and at most this many chunks: each costs a call and a product of its own (~30 us), and two
 #: threads finishing within one of 16 chunks of each other waste little
