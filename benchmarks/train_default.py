@@ -88,16 +88,20 @@ def main(argv=None):
                     help="the share of F's seeds a homography must explain for a view pair to be planar (stored "
                          "with the model; default: the one already stored with it, if any, else "
                          "edges.verify.PLANAR_RATIO; models/README.md: 0.7 for orb.pt)")
+    ap.add_argument("--noise-scaled-residuals", choices=("true", "false"), default=None,
+                    help="whether gcn gives this model the residual features of view pairs without sub-pixel "
+                         "keypoints in units of their noise (stored with the model; default: the choice already "
+                         "stored with it, if any; models/README.md: true for default.pt)")
     ap.add_argument("--restamp", action="store_true",
-                    help="only store --threshold, --planar-threshold, --planar-ratio, --chained-models and "
-                         "--graph-normalization in the shipped model of --detector (weights unchanged; all are chosen "
-                         "after training: models/README.md)")
+                    help="only store --threshold, --planar-threshold, --planar-ratio, --chained-models, "
+                         "--graph-normalization and --noise-scaled-residuals in the shipped model of --detector "
+                         "(weights unchanged; all are chosen after training: models/README.md)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     if args.restamp:
         target = SHIPPED_MODELS[DETECTOR_KINDS[args.detector]]
         _install(target, target, args.threshold, args.chained_models == "true", args.graph_normalization,
-                 args.planar_threshold, args.planar_ratio)
+                 args.planar_threshold, args.planar_ratio, _flag(args.noise_scaled_residuals))
         return
     train_f, val_f = split(problem_files(args.data, args.data_root, args.detector))
     print(f"train {len(train_f)} problems, validation {len(val_f)}: {[f.stem for f in val_f]}")
@@ -124,21 +128,27 @@ def main(argv=None):
     best = Path(args.out) / "checkpoint.pt"
     if args.install:
         _install(best, SHIPPED_MODELS[kind], args.threshold, args.chained_models == "true",
-                 args.graph_normalization, args.planar_threshold, args.planar_ratio)
+                 args.graph_normalization, args.planar_threshold, args.planar_ratio, _flag(args.noise_scaled_residuals))
+
+
+def _flag(value: Optional[str]) -> Optional[bool]:
+    """A "true" / "false" choice as a bool; None (not given) stays None."""
+    return None if value is None else value == "true"
 
 
 def _install(checkpoint: Path, target: Path, threshold: float, chained_models: bool,
              graph_normalization: Optional[str] = None, planar_threshold: Optional[float] = None,
-             planar_ratio: Optional[float] = None) -> None:
+             planar_ratio: Optional[float] = None, noise_scaled_residuals: Optional[bool] = None) -> None:
     """Write ``checkpoint``'s weights (no optimizer state; models/README.md) with ``threshold``,
-    ``chained_models``, ``graph_normalization``, ``planar_threshold`` and ``planar_ratio`` (None:
-    the one ``checkpoint`` stores, if any) to ``target`` (atomically: save_checkpoint). A restamp
-    of the threshold alone thus keeps the shipped models' other choices."""
+    ``chained_models``, ``graph_normalization``, ``planar_threshold``, ``planar_ratio`` and
+    ``noise_scaled_residuals`` (None: the one ``checkpoint`` stores, if any) to ``target``
+    (atomically: save_checkpoint). A restamp of the threshold alone thus keeps the shipped models'
+    other choices."""
     model, meta = load_checkpoint(checkpoint)
     stored = meta["config"].get("solver") or {}
     solver = {"threshold": threshold, "chained_models": chained_models}
     for name, value in (("graph_normalization", graph_normalization), ("planar_threshold", planar_threshold),
-                        ("planar_ratio", planar_ratio)):
+                        ("planar_ratio", planar_ratio), ("noise_scaled_residuals", noise_scaled_residuals)):
         value = stored.get(name) if value is None else value
         if value is not None:
             solver[name] = value

@@ -142,6 +142,37 @@ def test_only_trusted_models_give_geometric_features_and_guided_candidates():
     assert uncalibrated is not None and not uncalibrated.essential
 
 
+def test_noise_scaled_residuals_are_in_units_of_the_noise_of_pairs_without_sub_pixel_keypoints():
+    """Two views of a 3-D scene: with 1 px of keypoint noise the pair's model is fitted at
+    epipolar_px and, with noise_scaled_residuals, its residual features are those of the pixel
+    residuals over noise_px / AGREE_MIN_PX (> 1); the edges, their pixel residuals and every
+    other feature stay. With 0.1 px of noise the fine fit is kept and nothing changes."""
+    import dataclasses
+
+    from gcn_match_ros.data import synthetic
+    from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX
+
+    res = [EDGE_FEATURES.index("res_log"), EDGE_FEATURES.index("res_lin")]
+    for pixel_noise, scaled in ((1.0, True), (0.1, False)):
+        scene = dataclasses.replace(synthetic.preset("easy", 2, "sift"), pixel_noise=pixel_noise)
+        problem = synthetic.random_scene_problem(scene, np.random.default_rng(3))
+        px = candidate_edges(problem)
+        units = candidate_edges(problem, EdgeConfig(noise_scaled_residuals=True))
+        model = units.models[(0, 1)]
+        assert (model.epipolar_fit_px == EPIPOLAR_PX) == scaled
+        np.testing.assert_array_equal(units.rows, px.rows)
+        np.testing.assert_array_equal(units.res_px, px.res_px)
+        others = [i for i in range(len(EDGE_FEATURES)) if i not in res]
+        np.testing.assert_array_equal(units.features[:, others], px.features[:, others])
+        expected = px.features[:, res]
+        if scaled:
+            unit = model.noise_px / AGREE_MIN_PX
+            assert unit > 1.5
+            d = px.res_px / unit
+            expected = np.stack([np.log1p(np.minimum(d, 1e3)) / np.log1p(1e3), np.minimum(d, 10.0) / 10.0], axis=1)
+        np.testing.assert_allclose(units.features[:, res], expected, rtol=1e-6)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_deduplicated_candidates_are_the_sorted_unique_pairs_guided_if_any_copy_is(seed):
     rng = np.random.default_rng(seed)

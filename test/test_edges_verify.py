@@ -163,15 +163,17 @@ def test_agrees_uses_the_selected_model_and_its_tolerance():
 
 
 def test_agreement_tolerance_follows_the_keypoint_noise():
-    """3 sigma of the noise measured on the fit's inliers, within [AGREE_MIN_PX, EPIPOLAR_PX]."""
+    """3 sigma of the noise measured on the fit's inliers, within [AGREE_MIN_PX, EPIPOLAR_PX];
+    the estimate itself, unclipped, is the model's noise_px."""
     rng = np.random.default_rng(7)
     xa, xb, _ = _non_planar_pairs(rng, n=80)
     exact = fit_pair(xa, xb, K_a=K, K_b=K)
-    assert exact.epipolar_px == AGREE_MIN_PX
+    assert exact.epipolar_px == AGREE_MIN_PX and exact.noise_px < 0.1
     noisy = fit_pair(xa + rng.normal(0, 0.5, xa.shape), xb + rng.normal(0, 0.5, xb.shape), K_a=K, K_b=K)
     assert AGREE_MIN_PX < noisy.epipolar_px <= EPIPOLAR_PX
+    assert noisy.noise_px == noisy.epipolar_px
     very_noisy = fit_pair(xa + rng.normal(0, 2.0, xa.shape), xb + rng.normal(0, 2.0, xb.shape), K_a=K, K_b=K)
-    assert very_noisy.epipolar_px == EPIPOLAR_PX
+    assert very_noisy.epipolar_px == EPIPOLAR_PX < very_noisy.noise_px
 
 
 @pytest.mark.parametrize("calibrated", [False, True])

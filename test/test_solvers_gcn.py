@@ -156,6 +156,18 @@ def test_planar_ratio_follows_the_model_unless_set():
         solvers.create("gcn:planar_ratio=0")
 
 
+def test_noise_scaled_residuals_follow_the_model_unless_set():
+    """The shipped SIFT model takes the residual features of pairs without sub-pixel keypoints in
+    units of their noise, the ORB model in pixels (models/README.md); the candidate edges are
+    computed as the solver resolves it."""
+    solver = solvers.create("gcn")
+    assert solver.noise_scaled_residuals is True and solver.edge_config.noise_scaled_residuals is True
+    solver._use(str(SHIPPED_MODELS[(256, True)]))
+    assert solver.noise_scaled_residuals is False and solver.edge_config.noise_scaled_residuals is False
+    off = solvers.create("gcn:noise_scaled_residuals=false")
+    assert off.edge_config.noise_scaled_residuals is False
+
+
 def test_untrusted_models_guide_candidates_only_when_asked(monkeypatch, one_torch_thread):
     """trusted_candidates=false (the recall-first operating point, config/recall.yaml): a view pair
     whose fitted model is not trusted (generated partial visibility: views 0 and 1 share few

@@ -46,7 +46,8 @@ def test_settings_of_names_the_configuration_fields():
                                   "descriptor_fallback", "verify", "unverified_threshold", "chained_models",
                                   "rotation_cycles", "epipolar_ratio", "epipolar_fit_px", "epipolar_fine_px",
                                   "neighbours", "min_shared_neighbours", "prefer_localised", "planar_threshold",
-                                  "planar_ratio", "support_threshold", "trusted_candidates", "parallel", "keep_apart")
+                                  "planar_ratio", "support_threshold", "trusted_candidates", "noise_scaled_residuals",
+                                  "parallel", "keep_apart")
     for name in BUILT_INS:
         assert settings_of(name)[:2] == ("graph", "threshold")  # every solver's common settings first
 

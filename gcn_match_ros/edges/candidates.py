@@ -15,7 +15,9 @@ Lowe ratio from each side, rank from each side, mutual-NN flag, the confident-ed
 triangle support (fraction of third views k with some c such that a–c and c–b are both
 candidates; and the same on the confident edges only), and the geometric residuals (in
 pixels, squashed) of the edge under the trusted H or F, plus whether there is one (an
-untrusted model gives no geometric credit). The trusted models come back with the edges
+untrusted model gives no geometric credit). With ``noise_scaled_residuals`` the residuals of a
+view pair whose keypoints are not localised to a fraction of a pixel are in units of its noise
+(:func:`residual_unit_px`). The trusted models come back with the edges
 (:attr:`EdgeSet.models`) for the checks of :mod:`.consistency`. Everything here is computed
 from the problem's keypoints and descriptors (and intrinsics, when known) only, in training
 and at test time alike.
@@ -42,11 +44,11 @@ from ..similarity import DescriptorSimilarity
 from ..threads import SharedTasks
 from ..timing import stage
 from .rig_memory import RigMemory
-from .verify import (EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
+from .verify import (AGREE_MIN_PX, EPIPOLAR_PX, FINE_PX, MIN_INLIER_RATIO, MIN_INLIERS, MIN_SEEDS, PLANAR_RATIO, PairModel,
                      check_planar_ratio, fit_pair, matrix_residuals, may_be_trusted, model_matrices)
 
 __all__ = ["EdgeConfig", "EdgeSet", "PairCandidates", "CandidateJob", "candidate_edges", "confident_pairs",
-           "EDGE_FEATURES", "RANK_CAP"]
+           "residual_unit_px", "EDGE_FEATURES", "RANK_CAP"]
 
 EDGE_FEATURES = ("cosine", "ratio_a", "ratio_b", "rank_a", "rank_b", "mutual", "confident",
                  "tri_all", "tri_conf", "res_log", "res_lin", "has_model", "planar", "guided")
@@ -66,7 +68,8 @@ class EdgeConfig(JsonConfig):
     epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels); fine_px:
     the threshold tried first, kept for sub-pixel keypoints (:func:`.verify.fit_pair`; 0: off);
     planar_ratio: a view pair is planar when H explains at least this share of what F explains
-    (:func:`.verify.fit_pair`)."""
+    (:func:`.verify.fit_pair`); noise_scaled_residuals: the residual features of a view pair whose
+    model was not fitted at ``fine_px`` are in units of its keypoint noise (:func:`residual_unit_px`)."""
 
     k: int = 4
     geometry: bool = True
@@ -80,6 +83,7 @@ class EdgeConfig(JsonConfig):
     epipolar_px: float = EPIPOLAR_PX
     fine_px: float = FINE_PX
     planar_ratio: float = PLANAR_RATIO
+    noise_scaled_residuals: bool = False
 
     def __post_init__(self) -> None:
         if self.normalization not in NORMALIZATIONS:
@@ -139,6 +143,23 @@ class EdgeSet:
         at = np.flatnonzero(keep)  # then take: 0.06 ms for 20 k edges, boolean indexing 0.5 ms
         return EdgeSet(self.rows.take(at), self.cols.take(at), self.features.take(at, axis=0), self.res_px.take(at),
                        self.confident.take(at), self.models)
+
+
+def residual_unit_px(model: Optional[PairModel], config: EdgeConfig) -> float:
+    """Pixels per unit of a view pair's residual features (``res_log``, ``res_lin``): 1, or
+    with ``config.noise_scaled_residuals`` and an epipolar ``model`` not fitted at
+    ``config.fine_px`` (its seeds showed no sub-pixel localisation) its noise estimate
+    (:attr:`.verify.PairModel.noise_px`, three sigma) over :data:`.verify.AGREE_MIN_PX`, at least 1.
+
+    Why: the edge head learns its residual scale where three sigma of the keypoint noise is about
+    1 px (SIFT on real images) and scores a true pair the lower the farther it lies from the
+    fitted line; with keypoints of 1 px noise (the generated scenes) it refuses true pairs 2-3 px
+    off. In units of the pair's own noise they look as sub-pixel keypoints' true pairs do.
+    """
+    if (not config.noise_scaled_residuals or model is None or model.planar or model.F is None
+            or model.epipolar_fit_px < config.epipolar_px):
+        return 1.0
+    return max(AGREE_MIN_PX, model.noise_px) / AGREE_MIN_PX
 
 
 def _squash(d: np.ndarray) -> np.ndarray:
@@ -249,7 +270,8 @@ class CandidateJob:
         kept = np.ones(part.ea.shape[0], bool) if self._keep is None else self._keep((i, j), model, part)
         return _PairBlock(*_pair_block(part.ea, part.eb, part.confident, kept, a0, b0, part.cosine, part.ratio_a,
                                        part.ratio_b, part.rank_a, part.rank_b, part.mutual, part.model_kind,
-                                       part.guided, part.res_h, part.res_f), model)
+                                       part.guided, part.res_h, part.res_f), model,
+                          residual_unit_px(model, self._config))
 
     def _edges(self, done: List["_PairBlock"]) -> EdgeSet:
         """Every pair's edges (``done``, in the order of the pairs) together, with the features
@@ -273,13 +295,16 @@ class CandidateJob:
                                                scored_cols, by_row)
         feats[:, _TRI_CONF] = _triangle_support(n, V, view, rows, cols, conf_all, scored_rows, scored_cols, by_row)
         rmin = cat("res_px")
-        feats[:, _RES_LOG] = _squash(rmin)
-        feats[:, _RES_LIN] = np.minimum(rmin, 10.0) / 10.0
+        unit = np.repeat([block.residual_unit_px for block in done], [block.res_px.shape[0] for block in done])
+        in_units = rmin / unit
+        feats[:, _RES_LOG] = _squash(in_units)
+        feats[:, _RES_LIN] = np.minimum(in_units, 10.0) / 10.0
         return EdgeSet(scored_rows, scored_cols, feats, rmin, feats[:, _CONFIDENT] > 0, models)
 
 
 class _PairBlock(NamedTuple):
-    """One view pair's share of the window's edges (:func:`_pair_block`) and its trusted model."""
+    """One view pair's share of the window's edges (:func:`_pair_block`), its trusted model and the
+    unit of its residual features (:func:`residual_unit_px`)."""
 
     rows: np.ndarray
     cols: np.ndarray
@@ -289,6 +314,7 @@ class _PairBlock(NamedTuple):
     features: np.ndarray
     res_px: np.ndarray
     model: Optional[PairModel]
+    residual_unit_px: float
 
 
 # The columns of EDGE_FEATURES, by name (constants in the compiled code).

@@ -130,7 +130,9 @@ class PairModel:
         essential: F comes from an essential matrix (both cameras calibrated).
         px: the inlier threshold H was fitted with; epipolar_px: the Sampson distance within
             which a pair agrees with F (see :data:`AGREE_SIGMAS`); :meth:`agrees`;
-            epipolar_fit_px: the inlier threshold F was fitted with.
+            epipolar_fit_px: the inlier threshold F was fitted with; noise_px: AGREE_SIGMAS x the
+            keypoint noise estimated from F's inliers, unclipped (epipolar_px is it clipped to
+            [AGREE_MIN_PX, epipolar_fit_px]; 0 without F).
     """
 
     H: Optional[np.ndarray]
@@ -143,6 +145,7 @@ class PairModel:
     px: float = RANSAC_PX
     epipolar_px: float = EPIPOLAR_PX
     epipolar_fit_px: float = EPIPOLAR_PX
+    noise_px: float = 0.0
 
     @property
     def inliers(self) -> int:
@@ -254,13 +257,13 @@ def fit_pair(xa: np.ndarray, xb: np.ndarray, px: float = RANSAC_PX, seed: int = 
     planar = H is not None and (F is None or nh >= planar_ratio * nf_at_epipolar_px)
     if not planar and F is None:
         return None
-    agree_px = fit_px
+    agree_px, noise_px = fit_px, 0.0
     if F is not None:
         inlier_res = res[res <= fit_px]
-        sigma = float(np.median(inlier_res)) / 0.674 if inlier_res.size else 0.0
-        agree_px = float(np.clip(AGREE_SIGMAS * sigma, min(AGREE_MIN_PX, fit_px), fit_px))
+        noise_px = AGREE_SIGMAS * float(np.median(inlier_res)) / 0.674 if inlier_res.size else 0.0
+        agree_px = float(np.clip(noise_px, min(AGREE_MIN_PX, fit_px), fit_px))
     return PairModel(H, F, planar, seeds=n, inliers_h=nh, inliers_f=nf, essential=calibrated and F is not None,
-                     px=px, epipolar_px=agree_px, epipolar_fit_px=fit_px)
+                     px=px, epipolar_px=agree_px, epipolar_fit_px=fit_px, noise_px=noise_px)
 
 
 def _fit_homography(a: np.ndarray, b: np.ndarray, px: float, seed: int,

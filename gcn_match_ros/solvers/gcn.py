@@ -145,6 +145,11 @@ class GCNSolverConfig(SolverConfig):
             0.768, the filing's solver 0.733 / 0.754: benchmarks/results/real_eval_operating_points.md;
             with trusted models only 0.718 / 0.732: real_eval_filing.md). Needs ``verify=false``:
             the verification checks pairs against trusted models only.
+        noise_scaled_residuals: the edge head's residual features of a view pair whose seeds show
+            no sub-pixel localisation (its model fitted at ``epipolar_fit_px``) are in units of
+            that pair's keypoint noise (:func:`gcn_match_ros.edges.candidates.residual_unit_px`);
+            None: the loaded model's choice (``config["solver"]["noise_scaled_residuals"]``: true
+            for the shipped SIFT model, models/README.md), else False.
         parallel: compute the candidate edges on a second thread while the graph and the network
             run (:func:`gcn_match_ros.threads.alongside`); the same results either way. False:
             one thread.
@@ -177,6 +182,7 @@ class GCNSolverConfig(SolverConfig):
     planar_ratio: float = -1.0
     support_threshold: float = 0.0
     trusted_candidates: bool = True
+    noise_scaled_residuals: Optional[bool] = None
     parallel: bool = True
     keep_apart: bool = True
 
@@ -330,12 +336,21 @@ class GCNSolver(Solver):
     @property
     def edge_config(self) -> EdgeConfig:
         """The candidate edges the loaded model was trained on, with this solver's epipolar
-        fit thresholds, H-vs-F choice (:attr:`planar_ratio`) and trust rule (``trusted_candidates``)."""
+        fit thresholds, H-vs-F choice (:attr:`planar_ratio`), trust rule (``trusted_candidates``) and
+        residual units (:attr:`noise_scaled_residuals`)."""
         edges = dataclasses.replace(edge_config_of(self.model), epipolar_px=self.config.epipolar_fit_px,
-                                    fine_px=self.config.epipolar_fine_px, planar_ratio=self.planar_ratio)
+                                    fine_px=self.config.epipolar_fine_px, planar_ratio=self.planar_ratio,
+                                    noise_scaled_residuals=self.noise_scaled_residuals)
         if not self.config.trusted_candidates:
             edges = dataclasses.replace(edges, min_inliers=0, min_inlier_ratio=0.0)
         return edges
+
+    @property
+    def noise_scaled_residuals(self) -> bool:
+        """The noise_scaled_residuals setting, else the loaded model's choice, else False."""
+        if self.config.noise_scaled_residuals is not None:
+            return self.config.noise_scaled_residuals
+        return bool(self._model_choice("noise_scaled_residuals", False))
 
     @property
     def planar_ratio(self) -> float:
