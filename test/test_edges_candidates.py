@@ -146,20 +146,22 @@ def test_noise_scaled_residuals_are_in_units_of_the_noise_of_pairs_without_sub_p
     """Two views of a 3-D scene: with 1 px of keypoint noise the pair's model is fitted at
     epipolar_px and, with noise_scaled_residuals, its residual features are those of the pixel
     residuals over noise_px / AGREE_MIN_PX (> 1); the edges, their pixel residuals and every
-    other feature stay. With 0.1 px of noise the fine fit is kept and nothing changes."""
+    other feature stay. With 0.6 px the model is fitted at epipolar_px too, but its measured
+    sigma (noise_px / 3: 0.45 px) is within fine_px, and with 0.1 px the fine fit is kept: there
+    nothing changes."""
     import dataclasses
 
     from gcn_match_ros.data import synthetic
     from gcn_match_ros.edges.verify import AGREE_MIN_PX, EPIPOLAR_PX
 
     res = [EDGE_FEATURES.index("res_log"), EDGE_FEATURES.index("res_lin")]
-    for pixel_noise, scaled in ((1.0, True), (0.1, False)):
+    for pixel_noise, coarse, scaled in ((1.0, True, True), (0.6, True, False), (0.1, False, False)):
         scene = dataclasses.replace(synthetic.preset("easy", 2, "sift"), pixel_noise=pixel_noise)
         problem = synthetic.random_scene_problem(scene, np.random.default_rng(3))
         px = candidate_edges(problem)
         units = candidate_edges(problem, EdgeConfig(noise_scaled_residuals=True))
         model = units.models[(0, 1)]
-        assert (model.epipolar_fit_px == EPIPOLAR_PX) == scaled
+        assert (model.epipolar_fit_px == EPIPOLAR_PX) == coarse
         np.testing.assert_array_equal(units.rows, px.rows)
         np.testing.assert_array_equal(units.res_px, px.res_px)
         others = [i for i in range(len(EDGE_FEATURES)) if i not in res]
