@@ -69,8 +69,8 @@ class EdgeConfig(JsonConfig):
     epipolar_px: inlier threshold of the epipolar model (Sampson distance, pixels); fine_px:
     the threshold tried first, kept for sub-pixel keypoints (:func:`.verify.fit_pair`; 0: off);
     planar_ratio: a view pair is planar when H explains at least this share of what F explains
-    (:func:`.verify.fit_pair`); noise_scaled_residuals: the residual features of a view pair whose
-    model was not fitted at ``fine_px`` are in units of its keypoint noise (:func:`residual_unit_px`)."""
+    (:func:`.verify.fit_pair`); noise_scaled_residuals: the residual features of a view pair of
+    noisy keypoints are in units of their noise (:func:`residual_unit_px`)."""
 
     k: int = 4
     geometry: bool = True
