@@ -89,8 +89,8 @@ def main(argv=None):
                          "with the model; default: the one already stored with it, if any, else "
                          "edges.verify.PLANAR_RATIO; models/README.md: 0.7 for orb.pt)")
     ap.add_argument("--noise-scaled-residuals", choices=("true", "false"), default=None,
-                    help="whether gcn gives this model the residual features of view pairs without sub-pixel "
-                         "keypoints in units of their noise (stored with the model; default: the choice already "
+                    help="whether gcn gives this model the residual features of view pairs of noisy keypoints in "
+                         "units of their noise (stored with the model; default: the choice already "
                          "stored with it, if any; models/README.md: true for default.pt)")
     ap.add_argument("--restamp", action="store_true",
                     help="only store --threshold, --planar-threshold, --planar-ratio, --chained-models, "
