@@ -412,13 +412,18 @@ def same_problem(a: Problem, b: Problem) -> bool:
     return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in PROBLEM_KEYS)
 
 
-def true_pair_set(gt, view):
-    """Set of (i, j), i < j, keypoints in different views with the same gt >= 0."""
-    out = set()
+def same_track_pairs(gt, view):
+    """[(i, j), ...], i < j, keypoints in different views with the same gt >= 0, track by track."""
+    out = []
     for g in np.unique(gt[gt >= 0]):
         idx = np.flatnonzero(gt == g)
-        out.update((int(a), int(b)) for a, b in itertools.combinations(idx, 2) if view[a] != view[b])
+        out += [(int(a), int(b)) for a, b in itertools.combinations(idx, 2) if view[a] != view[b]]
     return out
+
+
+def true_pair_set(gt, view):
+    """Set of (i, j), i < j, keypoints in different views with the same gt >= 0."""
+    return set(same_track_pairs(gt, view))
 
 
 # --------------------------------------------------------------------------------------
@@ -446,12 +451,7 @@ def known_answer_problem(n_views: int, n_points: int, visibility: float = 1.0, s
 
 def true_pair_list(problem: Problem):
     """[(a, b), ...] keypoints of different views on the same ground-truth track, a < b."""
-    gt, view = problem.gt_track, problem.view_index
-    out = []
-    for g in np.unique(gt[gt >= 0]):
-        idx = np.flatnonzero(gt == g)
-        out += [(int(a), int(b)) for a, b in itertools.combinations(idx, 2) if view[a] != view[b]]
-    return out
+    return same_track_pairs(problem.gt_track, problem.view_index)
 
 
 def graph_from_pairs(problem: Problem, pairs) -> CorrespondenceGraph:
