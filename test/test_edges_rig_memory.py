@@ -124,6 +124,15 @@ def test_a_pair_whose_model_fails_is_refitted_at_once():
     assert rig.model(("a", "b"), xa, xb, lost) is None and lost.calls == 1 and rig.invalidated == 1
 
 
+def _assert_solve_stream_answers_alike(spec, windows, online):
+    """solve_stream (a fresh solver of ``spec``) gives the tracks and scores ``online`` holds for
+    ``windows``, one window at a time as the node solves them."""
+    offline = [r for r, _ in solve_stream(solvers.create(spec), windows, stamps_ns=range(len(windows)))]
+    for a, b in zip(online, offline, strict=True):
+        np.testing.assert_array_equal(a.track, b.track)
+        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+
+
 def test_a_stream_reuses_models_and_answers_as_solve_stream():
     base = synthetic.random_scene_problem(synthetic.rome16k(3, n_points=200), rng=np.random.default_rng(9))
     windows = [dataclasses.replace(base, camera_ids=("c0", "c1", "c2"), name=f"w{k}") for k in range(3)]
@@ -134,10 +143,7 @@ def test_a_stream_reuses_models_and_answers_as_solve_stream():
     assert trusted >= 2 and state.rig.reused == 2 * trusted
     # a pair without one: fitted in windows 0 and 2, skipped in window 1 (back-off)
     assert state.rig.fitted == 3 + (3 - trusted) and state.rig.skipped == 3 - trusted
-    offline = [r for r, _ in solve_stream(solvers.create("gcn"), windows, stamps_ns=range(3))]
-    for a, b in zip(online, offline):
-        np.testing.assert_array_equal(a.track, b.track)
-        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+    _assert_solve_stream_answers_alike("gcn", windows, online)
     # a window that names no cameras never touches the memory
     counts = (state.rig.fitted, state.rig.reused)
     solver.solve(dataclasses.replace(base, camera_ids=None), stream=state)
@@ -154,10 +160,7 @@ def test_the_recall_preset_answers_online_as_offline():
     solver = solvers.create(spec)
     online = [solver.solve(w, stream=state) for w in windows]
     assert len(state.rig) == 6 and state.rig.reused == 12  # every pair, views 0 and 1's untrusted model too
-    offline = [r for r, _ in solve_stream(solvers.create(spec), windows, stamps_ns=range(3))]
-    for a, b in zip(online, offline):
-        np.testing.assert_array_equal(a.track, b.track)
-        np.testing.assert_array_equal(a.pair_scores, b.pair_scores)
+    _assert_solve_stream_answers_alike(spec, windows, online)
 
 
 def test_reused_models_match_as_well_as_fresh_fits():
