@@ -160,7 +160,8 @@ def residual_unit_px(model: Optional[PairModel], config: EdgeConfig) -> float:
     real SIFT view pairs fitted at ``epipolar_px`` measure sigma 0.3-0.7 px (median 0.4) and
     mostly keep pixels.
     """
-    if (not config.noise_scaled_residuals or model is None or model.planar or model.F is None
+    # noise_px is 0 without F, so the noise test also keeps pixels for a model without one
+    if (not config.noise_scaled_residuals or model is None or model.planar
             or model.epipolar_fit_px < config.epipolar_px or model.noise_px <= AGREE_SIGMAS * config.fine_px):
         return 1.0
     return max(AGREE_MIN_PX, model.noise_px) / AGREE_MIN_PX
