@@ -1,12 +1,14 @@
 """Tests of gcn_match_ros.edges.consistency: which pairs a window's trusted geometry keeps, and
 tracks that must agree as a whole."""
+import dataclasses
+
 import numpy as np
 
 from gcn_match_ros.edges.candidates import EdgeConfig
-from gcn_match_ros.edges.consistency import (CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck, WindowGeometry,
-                                             checkable_view_pairs, may_keep, unverifiable_views,
-                                             verified_tracks)
-from gcn_match_ros.edges.verify import MIN_SEEDS, RANSAC_PX, PairModel, residuals
+from gcn_match_ros.edges.consistency import (CHAIN_SLACK, COARSE_CHAIN_SLACK, UNVERIFIED_THRESHOLD, TrackCheck,
+                                             WindowGeometry, chain_slack, checkable_view_pairs, may_keep,
+                                             unverifiable_views, verified_tracks)
+from gcn_match_ros.edges.verify import EPIPOLAR_PX, FINE_PX, MIN_SEEDS, RANSAC_PX, PairModel, residuals
 from gcn_match_ros.problem import Problem
 from gcn_match_ros.rounding import greedy_tracks
 
@@ -123,6 +125,31 @@ def test_members_joined_through_a_third_get_the_chain_slack():
     assert track[x] == track[y] == track[z] >= 0
 
 
+def test_a_view_pair_fitted_coarse_gets_the_coarse_chain_slack():
+    """x-y and y-z are kept pairs; x-z lies 2.5x its epipolar tolerance off the model of (0, 2):
+    a chain too far for a finely fitted model, within reach of a coarsely fitted one."""
+    p = _window()  # view 2 is view 0 shifted by (20, 10)
+    o = p.view_offsets
+    x, y, z = o[0] + 2, o[1] + 2, o[2] + 2
+    kp = p.keypoints.copy()
+    kp[z, 1] += 3.0
+    p = Problem(view_offsets=p.view_offsets, keypoints=kp, descriptors=p.descriptors)
+    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 10]])  # (0, 2)'s epipolar lines: y_b = y_a + 10
+    rows, cols, scores = np.array([x, y]), np.array([y, z]), np.array([0.9, 0.8])
+    for fit_px, slack in ((EPIPOLAR_PX, COARSE_CHAIN_SLACK), (FINE_PX, CHAIN_SLACK)):
+        model = PairModel(None, F, planar=False, seeds=40, inliers_f=40, epipolar_px=1.0, epipolar_fit_px=fit_px)
+        residual = residuals(model, kp[[x]], kp[[z]])[1][0]
+        model = dataclasses.replace(model, epipolar_px=residual / 2.5)
+        assert chain_slack(model, EdgeConfig()) == slack
+        geometry = WindowGeometry(p, {(0, 1): _shift(10, 5), (1, 2): _shift(10, 5), (0, 2): model})
+        check = TrackCheck(geometry, rows, cols)
+        track = greedy_tracks(p.n_keypoints, p.view_index, rows, cols, scores, 0.5, compatible=check)
+        assert track[x] == track[y] >= 0
+        assert (track[z] == track[x]) == (slack == COARSE_CHAIN_SLACK) and check.refused == (slack == CHAIN_SLACK)
+    # a homography keeps CHAIN_SLACK, whatever its epipolar model was fitted at
+    assert chain_slack(_shift(1, 0), EdgeConfig()) == CHAIN_SLACK
+
+
 def test_two_witnesses_vouch_for_an_unverified_view_pair():
     p = _window(sizes=(20, 20, 20, 20))
     o = p.view_offsets
@@ -152,7 +179,9 @@ def test_two_witnesses_vouch_for_an_unverified_view_pair():
 
 def test_batched_and_compiled_agreement_equal_each_models_own_check():
     """WindowGeometry.agree batches every view pair's check, the track check (compiled) tests a
-    merge's member pairs one by one at CHAIN_SLACK; both must answer as PairModel.agrees."""
+    merge's member pairs one by one at each view pair's chain_slack; both must answer as
+    PairModel.agrees. (0, 2)'s model is fitted coarse (EPIPOLAR_PX, the default), (0, 1)'s is a
+    homography."""
     rng = np.random.default_rng(4)
     p = _window(sizes=(30, 30, 30))
     F = np.array([[0, -1e-3, 0.2], [1e-3, 0, -0.3], [-0.2, 0.3, 1.0]])
@@ -164,17 +193,23 @@ def test_batched_and_compiled_agreement_equal_each_models_own_check():
     kp = p.keypoints.astype(np.float64)
     nothing_kept = np.zeros(0, np.int64)
     check = TrackCheck(geometry, nothing_kept, nothing_kept)
-    for slack in (1.0, CHAIN_SLACK):
+    assert [chain_slack(models[k], geometry.edges) for k in ((0, 1), (0, 2))] == [CHAIN_SLACK, COARSE_CHAIN_SLACK]
+    for slack in (1.0, CHAIN_SLACK, COARSE_CHAIN_SLACK):
         got = geometry.agree(rows, cols, slack)
         for r, c, g in zip(rows, cols, got):
             model = models[(0, p.view_index[c])]
             want = False if model is None else model.agrees(kp[[r]], kp[[c]], slack)[0]
             assert g == want
-            if slack == CHAIN_SLACK:  # two lone keypoints, either order: no witnesses
-                assert check.test(check.data, np.array([r, c]), 1, 1) == g
-                assert check.test(check.data, np.array([c, r]), 1, 1) == g
         assert got.any() and not got.all()
-    assert check.refused == 2 * int((~geometry.agree(rows, cols, CHAIN_SLACK)).sum())
+    refused = 0
+    for r, c in zip(rows, cols):
+        model = models[(0, p.view_index[c])]
+        agrees = model is not None and model.agrees(kp[[r]], kp[[c]], chain_slack(model, geometry.edges))[0]
+        refused += 2 * (not agrees)
+        # two lone keypoints, either order: no witnesses
+        assert check.test(check.data, np.array([r, c]), 1, 1) == agrees
+        assert check.test(check.data, np.array([c, r]), 1, 1) == agrees
+    assert check.refused == refused
 
 
 def _chains(p, n, scramble_last=False, seed=0):

@@ -104,6 +104,12 @@ class EdgeConfig(JsonConfig):
         return fit_pair(xa, xb, K_a=K_a, K_b=K_b, epipolar_px=self.epipolar_px, fine_px=self.fine_px,
                         planar_ratio=self.planar_ratio)
 
+    def fitted_coarse(self, model: Optional[PairModel]) -> bool:
+        """Whether ``model`` is an epipolar model fitted at ``epipolar_px``: its seeds showed no
+        sub-pixel localisation (:func:`.verify.fit_pair`), so its agreement tolerance is clipped
+        to that threshold rather than measured below it."""
+        return model is not None and not model.planar and model.epipolar_fit_px >= self.epipolar_px
+
     def may_fit(self, xa: np.ndarray, xb: np.ndarray) -> bool:
         """Whether :meth:`fit` of these seed pairs could give a model these settings trust: the
         cheap probe of a camera pair that failed before (:func:`.verify.may_be_trusted`).
@@ -148,9 +154,9 @@ class EdgeSet:
 
 def residual_unit_px(model: Optional[PairModel], config: EdgeConfig) -> float:
     """Pixels per unit of a view pair's residual features (``res_log``, ``res_lin``): 1, or with
-    ``config.noise_scaled_residuals`` and an epipolar ``model`` of noisy keypoints — not fitted at
-    ``config.fine_px`` (its seeds showed no sub-pixel localisation) and measured noise sigma above
-    ``fine_px`` (:attr:`.verify.PairModel.noise_px` is three sigma) — that noise estimate over
+    ``config.noise_scaled_residuals`` and an epipolar ``model`` of noisy keypoints — fitted coarse
+    (:meth:`EdgeConfig.fitted_coarse`: its seeds showed no sub-pixel localisation) and measured
+    noise sigma above ``config.fine_px`` (:attr:`.verify.PairModel.noise_px` is three sigma) — that noise estimate over
     :data:`.verify.AGREE_MIN_PX`.
 
     Why: the edge head learns its residual scale where three sigma of the keypoint noise is about
@@ -161,8 +167,8 @@ def residual_unit_px(model: Optional[PairModel], config: EdgeConfig) -> float:
     mostly keep pixels.
     """
     # noise_px is 0 without F, so the noise test also keeps pixels for a model without one
-    if (not config.noise_scaled_residuals or model is None or model.planar
-            or model.epipolar_fit_px < config.epipolar_px or model.noise_px <= AGREE_SIGMAS * config.fine_px):
+    if (not config.noise_scaled_residuals or not config.fitted_coarse(model)
+            or model.noise_px <= AGREE_SIGMAS * config.fine_px):
         return 1.0
     return max(AGREE_MIN_PX, model.noise_px) / AGREE_MIN_PX
 
