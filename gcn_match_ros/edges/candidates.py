@@ -156,8 +156,8 @@ def residual_unit_px(model: Optional[PairModel], config: EdgeConfig) -> float:
     """Pixels per unit of a view pair's residual features (``res_log``, ``res_lin``): 1, or with
     ``config.noise_scaled_residuals`` and an epipolar ``model`` of noisy keypoints — fitted coarse
     (:meth:`EdgeConfig.fitted_coarse`: its seeds showed no sub-pixel localisation) and measured
-    noise sigma above ``config.fine_px`` (:attr:`.verify.PairModel.noise_px` is three sigma) — that noise estimate over
-    :data:`.verify.AGREE_MIN_PX`.
+    noise sigma above ``config.fine_px`` (:attr:`.verify.PairModel.noise_px` is three sigma) —
+    that noise estimate over :data:`.verify.AGREE_MIN_PX`.
 
     Why: the edge head learns its residual scale where three sigma of the keypoint noise is about
     1 px (SIFT on real images) and scores a true pair the lower the farther it lies from the
