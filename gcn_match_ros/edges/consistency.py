@@ -60,6 +60,7 @@ from ..view_pairs import by_view_pair, in_view_order
 from .candidates import EdgeConfig
 from .duplicates import better_placed_members, merge_order
 from .neighbourhood import MIN_SHARED, followed_pairs
+from .placement import placed_members
 from .rotation_cycles import MIN_ROTATION_PAIRS, broken_cycle_pairs, relative_rotation
 from .support import unsupported_tracks
 from .verify import (MIN_SEEDS, PairModel, f_residual, h_residual, model_matrices, sampson_error_px,
@@ -425,7 +426,9 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     ``threshold`` with every two members agreeing (:class:`TrackCheck`). In a window that sees
     one plane (:attr:`WindowGeometry.one_plane`) the pairs checked by its homographies merge at
     ``planar_threshold`` when given: the precision-first threshold guards against repetitions
-    along epipolar lines, which a point-to-point check does not let through. With
+    along epipolar lines, which a point-to-point check does not let through. In every other
+    window a pair scored at least ``planar_threshold`` may add to a track a keypoint its members
+    place point to point (:mod:`.placement`). With
     ``prefer_localised``, tracks of a one-plane window take of near-duplicate keypoints the ones
     the homographies place best (:mod:`.duplicates`: ranked before the merge, exchanged after it). With
     ``rotation_cycles`` the models that close none of their rotation cycles are dropped first
@@ -468,6 +471,9 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
                           keys[merged], -np.inf, compatible=check)
     if prefer_localised and one_plane:
         track = better_placed_members(geometry, track)
+    if not one_plane and planar_threshold is not None and planar_threshold < threshold:
+        track = placed_members(geometry, track, rows[keep], cols[keep], scores[keep], planar_threshold, threshold,
+                               check)
     if support_threshold > 0:
         dissolved = unsupported_tracks(geometry, track, rows[merged], cols[merged], scores[merged], support_threshold)
         if dissolved.size:

@@ -117,11 +117,13 @@ class GCNSolverConfig(SolverConfig):
             :data:`gcn_match_ros.edges.duplicates.DUPLICATE_PX`: ORB's pyramid levels report
             one corner several times) the ones the homographies place best
             (:mod:`gcn_match_ros.edges.duplicates`).
-        planar_threshold: with ``verify``, the threshold of a window that sees one plane (every
-            view pair of at least three views verified by a homography,
-            :attr:`gcn_match_ros.edges.consistency.WindowGeometry.one_plane`): its pairs are
-            checked point to point, so none of the repetitions along an epipolar line that the
-            precision-first ``threshold`` guards against pass. < 0: ``threshold`` when that is set,
+        planar_threshold: with ``verify``, the threshold of pairs checked point to point, so that
+            none of the repetitions along an epipolar line that the precision-first ``threshold``
+            guards against pass: every pair of a window that sees one plane (every view pair of at
+            least three views verified by a homography,
+            :attr:`gcn_match_ros.edges.consistency.WindowGeometry.one_plane`), and in other windows
+            a pair that adds to a track a keypoint the track's members place
+            (:mod:`gcn_match_ros.edges.placement`). < 0: ``threshold`` when that is set,
             else the loaded model's choice (``config["solver"]["planar_threshold"]``: its
             validation-F1 threshold, models/README.md), else ``threshold``.
         planar_ratio: a view pair's two-view model is the homography when it explains at least
