@@ -16,16 +16,17 @@ POINTS = np.random.default_rng(1).uniform(-0.8, 0.8, (14, 3))
 N = len(POINTS)
 
 
-def _window(centres, keypoints=None):
+def _window(centres, keypoints=None, points=POINTS):
     """Three cameras at ``centres`` looking at the origin, every point in every view (keypoints in
     point order; ``keypoints`` replaces view 2's), each view pair verified by its true F."""
     poses = [look_at(np.asarray(c, np.float64), np.zeros(3), down=(0.0, 1.0, 0.0)) for c in centres]
     R, t = np.array([p[0] for p in poses]), np.array([p[1] for p in poses])
-    views = [project(K, R[v], t[v], POINTS)[0] for v in range(3)]
+    views = [project(K, R[v], t[v], points)[0] for v in range(3)]
     if keypoints is not None:
         views[2] = keypoints
-    problem = Problem(view_offsets=np.arange(4) * N, keypoints=np.concatenate(views).astype(np.float32),
-                      descriptors=np.zeros((3 * N, 8), np.float32), image_size=np.tile(np.array(SIZE), (3, 1)))
+    n = len(points)
+    problem = Problem(view_offsets=np.arange(4) * n, keypoints=np.concatenate(views).astype(np.float32),
+                      descriptors=np.zeros((3 * n, 8), np.float32), image_size=np.tile(np.array(SIZE), (3, 1)))
     models = {(a, b): PairModel(H=None, F=fundamental_from_poses(K, R[a], t[a], K, R[b], t[b]), planar=False,
                                 seeds=20, inliers_f=20, epipolar_px=1.0)
               for a in range(3) for b in range(a + 1, 3)}
@@ -102,3 +103,22 @@ def test_pairs_of_keypoints_in_no_track_make_none():
     scores = np.full(rows.shape[0], 0.3)  # every pair below the threshold: no track to grow
     keep, track = verified_tracks(geometry, rows, cols, scores, 0.5, planar_threshold=0.2)
     assert keep.all() and (track < 0).all()
+
+
+def test_a_chained_model_places_nothing():
+    # 30 points: the first 20 matched through all three views at 0.9 (their chains give view pair
+    # 0-2 a chained model), the last 10 matched in views 0-1 at 0.9 and 1-2 at 0.3
+    points = np.random.default_rng(2).uniform(-0.8, 0.8, (30, 3))
+    n, last = len(points), np.arange(20, 30)
+    problem, geometry, *_ = _window(AROUND, points=points)
+    i = np.arange(n)
+    rows, cols = np.r_[i, n + i], np.r_[n + i, 2 * n + i]
+    scores = np.r_[np.full(n, 0.9), np.full(20, 0.9), np.full(10, 0.3)]
+    _, track = verified_tracks(geometry, rows, cols, scores, 0.5, planar_threshold=0.2)
+    assert (track[2 * n + last] == track[last]).all()  # the direct model of 0-2 places them
+    del geometry.models[(0, 2)]
+    geometry = WindowGeometry(problem, geometry.models)
+    assert (0, 2) in geometry.with_chained_models(rows, cols, scores, 0.5).models
+    _, track = verified_tracks(geometry, rows, cols, scores, 0.5, chained_models=True, planar_threshold=0.2)
+    assert (track[:20] == track[2 * n:2 * n + 20]).all() and (track[:20] >= 0).all()
+    assert (track[2 * n + last] < 0).all()  # one line of a direct model (from view 1) places nothing

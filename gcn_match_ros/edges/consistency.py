@@ -446,6 +446,7 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     if rotation_cycles:
         geometry = geometry.with_closed_rotation_cycles(rows, cols)
     keep = geometry.keep(rows, cols, scores)
+    direct = geometry  # the models of the view pairs' own seeds: what places a keypoint (.placement)
     if chained_models:
         chained = geometry.with_chained_models(rows[keep], cols[keep], scores[keep], threshold)
         if chained is not geometry:
@@ -472,8 +473,9 @@ def verified_tracks(geometry: WindowGeometry, rows: np.ndarray, cols: np.ndarray
     if prefer_localised and one_plane:
         track = better_placed_members(geometry, track)
     if not one_plane and planar_threshold is not None and planar_threshold < threshold:
-        track = placed_members(geometry, track, rows[keep], cols[keep], scores[keep], planar_threshold, threshold,
-                               check)
+        direct_check = check if direct is geometry else TrackCheck(direct, rows[merged], cols[merged])
+        track = placed_members(direct, track, rows[keep], cols[keep], scores[keep], planar_threshold, threshold,
+                               direct_check)
     if support_threshold > 0:
         dissolved = unsupported_tracks(geometry, track, rows[merged], cols[merged], scores[merged], support_threshold)
         if dissolved.size:

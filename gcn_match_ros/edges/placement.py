@@ -40,12 +40,14 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
     """Tracks grown by the keypoints their members place (module docstring), best pair first.
 
     Args:
-        geometry: the window's :class:`.consistency.WindowGeometry`.
+        geometry: the window's models of the view pairs' own descriptor seeds, without chained
+            ones (:meth:`.consistency.WindowGeometry.with_chained_models`: fitted on what the tracks
+            chained, they would vouch for the tracks' own growth).
         track: (N,) track of every keypoint (-1: none), merged from the pairs scoring >= ``high``.
         rows, cols, scores: (M,) the kept pairs with their scores; those scoring in [low, high)
             with one keypoint in a track and the other in none, when their turn comes, are tried.
         low, high: the point-to-point threshold and the threshold.
-        check: the merge test of the tracks (:class:`.consistency.TrackCheck`), asked with the
+        check: the track check of ``geometry`` (:class:`.consistency.TrackCheck`), asked with the
             track's members and the placed keypoint.
 
     Returns:
@@ -60,7 +62,7 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
     tracks: Dict[int, List[int]] = {int(track[members[s]]): members[s:e].tolist()
                                     for s, e in zip(starts[:-1], starts[1:])}
     view = geometry.view_index.tolist()
-    verified = geometry.verified & geometry.checkable
+    placing = geometry.verified & geometry.checkable
     transfers: dict = {}
     places: Dict[tuple, bool] = {}  # (track, its size, view): whether its members place a point there
     for e in band[np.argsort(-scores[band], kind="stable")].tolist():
@@ -71,21 +73,21 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
         group = tracks[t]
         key = (t, len(group), v)
         if key not in places:
-            places[key] = all(view[m] != v for m in group) and _placed(geometry, transfers, verified, group, v)
+            places[key] = all(view[m] != v for m in group) and _placed(geometry, transfers, placing, group, v)
         if places[key] and check.test(check.data, np.array(group + [y], np.int64), len(group), 1):
             track[y] = t
             group.append(y)
     return track
 
 
-def _placed(geometry: "WindowGeometry", transfers: dict, verified: np.ndarray, group: List[int], v: int) -> bool:
+def _placed(geometry: "WindowGeometry", transfers: dict, placing: np.ndarray, group: List[int], v: int) -> bool:
     """Whether members ``group`` place a point in view v: a homography from one of them, or two
     epipolar lines that cross (:func:`.support.lines_cross`)."""
     view = geometry.view_index
     lines = []
     for m in group:
         a = int(view[m])
-        if not verified[min(a, v), max(a, v)]:
+        if not placing[min(a, v), max(a, v)]:
             continue
         kind, mapped = placed_in(transfers, geometry, a, v, np.array([m]))
         if kind == "point":
