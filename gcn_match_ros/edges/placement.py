@@ -7,8 +7,9 @@ happens to lie on the line) agrees with its view pair's model. A keypoint that a
 view cross at :data:`.support.MIN_CROSSING_DEG` or more (the lines cross at one point), or one
 member whose view pair's model is a homography. A pair scored at least the window's
 point-to-point threshold (the solver's ``planar_threshold``, as for a window that sees one plane)
-that adds such a keypoint to a track of two or more is merged when the keypoint agrees with every
-member (:class:`.consistency.TrackCheck`).
+that adds such a keypoint to a track is merged when the keypoint agrees with every member
+(:class:`.consistency.TrackCheck`). The members that place are those merged at the threshold: a
+keypoint that joined below it places nothing, so weak evidence does not chain.
 
 Measured before the choice on generated windows of their own (seeds [11, 1000..1019]) and the
 3-D development windows of benchmarks/geometric_eval.py (SIFT, stored thresholds 0.5 / 0.2): the
@@ -21,13 +22,14 @@ own tolerance instead of the chain tolerance (a stricter placement) 0.944, parti
 """
 from __future__ import annotations
 
-import itertools
-from typing import TYPE_CHECKING, Dict, List
+import math
+from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 
 from ..rounding import MergeTest, track_members
-from .support import lines_cross, placed_in
+from .support import MIN_CROSSING_DEG
 
 if TYPE_CHECKING:  # consistency imports this module
     from .consistency import WindowGeometry
@@ -45,7 +47,7 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
             chained, they would vouch for the tracks' own growth).
         track: (N,) track of every keypoint (-1: none), merged from the pairs scoring >= ``high``.
         rows, cols, scores: (M,) the kept pairs with their scores; those scoring in [low, high)
-            with one keypoint in a track and the other in none, when their turn comes, are tried.
+            between a keypoint of a track and one of none are tried.
         low, high: the point-to-point threshold and the threshold.
         check: the track check of ``geometry`` (:class:`.consistency.TrackCheck`), asked with the
             track's members and the placed keypoint.
@@ -56,44 +58,87 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
     track = np.array(track, np.int64)
     rows, cols, scores = np.asarray(rows, np.int64), np.asarray(cols, np.int64), np.asarray(scores)
     band = np.flatnonzero((scores >= low) & (scores < high))
-    if not band.size or (track < 0).all():
+    in_row, in_col = track[rows[band]] >= 0, track[cols[band]] >= 0
+    band = band[in_row != in_col]
+    if not band.size:
         return track
+    x = np.where(track[rows[band]] >= 0, rows[band], cols[band])
+    y = np.where(track[rows[band]] >= 0, cols[band], rows[band])
     members, starts = track_members(track)
-    tracks: Dict[int, List[int]] = {int(track[members[s]]): members[s:e].tolist()
-                                    for s, e in zip(starts[:-1], starts[1:])}
-    view = geometry.view_index.tolist()
-    placing = geometry.verified & geometry.checkable
-    transfers: dict = {}
-    places: Dict[tuple, bool] = {}  # (track, its size, view): whether its members place a point there
-    for e in band[np.argsort(-scores[band], kind="stable")].tolist():
-        x, y = (int(rows[e]), int(cols[e])) if track[rows[e]] >= 0 else (int(cols[e]), int(rows[e]))
-        if track[x] < 0 or track[y] >= 0:  # a keypoint placed earlier can place its partners
+    view = geometry.view_index.astype(np.int64)
+    places = _places(members, starts, int(np.diff(starts).max()), view, geometry.keypoints.astype(np.float64),
+                     *_directed_models(geometry), math.sin(math.radians(MIN_CROSSING_DEG)))
+    t, v = track[x], view[y]
+    placed = places[t, v]
+    order = np.flatnonzero(placed)[np.argsort(-scores[band[placed]], kind="stable")]
+    groups = {}
+    for i in order.tolist():
+        ti, vi, yi = int(t[i]), int(v[i]), int(y[i])
+        if track[yi] >= 0 or not places[ti, vi]:  # placed meanwhile, or the track took view v
             continue
-        t, v = int(track[x]), view[y]
-        group = tracks[t]
-        key = (t, len(group), v)
-        if key not in places:
-            places[key] = all(view[m] != v for m in group) and _placed(geometry, transfers, placing, group, v)
-        if places[key] and check.test(check.data, np.array(group + [y], np.int64), len(group), 1):
-            track[y] = t
-            group.append(y)
+        group = groups.get(ti)
+        if group is None:
+            group = groups[ti] = members[starts[ti]:starts[ti + 1]].tolist()
+        if check.test(check.data, np.array(group + [yi], np.int64), len(group), 1):
+            track[yi] = ti
+            group.append(yi)
+            places[ti, vi] = False
     return track
 
 
-def _placed(geometry: "WindowGeometry", transfers: dict, placing: np.ndarray, group: List[int], v: int) -> bool:
-    """Whether members ``group`` place a point in view v: a homography from one of them, or two
-    epipolar lines that cross (:func:`.support.lines_cross`)."""
-    view = geometry.view_index
-    lines = []
-    for m in group:
-        a = int(view[m])
-        if not placing[min(a, v), max(a, v)]:
-            continue
-        kind, mapped = placed_in(transfers, geometry, a, v, np.array([m]))
-        if kind == "point":
-            return True
-        lines.append(mapped[0])
-    if len(lines) < 2:
-        return False
-    first, second = zip(*itertools.combinations(lines, 2))  # a track's few members: a handful of pairs
-    return bool(lines_cross(np.array(first), np.array(second)).any())
+def _directed_models(geometry: "WindowGeometry"):
+    """Per ordered view pair (a, b) whether its model places: verified by a model of its own seeds
+    (:attr:`.consistency.WindowGeometry.checkable` views), whether that model is a homography
+    (which places a point), and its F oriented a -> b (F x_a is x_a's line in view b).
+
+    Returns: (V, V) bool, (V, V) bool, (V, V, 3, 3) float64."""
+    V = geometry.verified.shape[0]
+    placing = geometry.verified & geometry.checkable
+    planar = np.zeros((V, V), bool)
+    F = np.zeros((V, V, 3, 3))
+    for (a, b), model in geometry.models.items():
+        planar[a, b] = planar[b, a] = model.inlier_rule[0]
+        if model.F is not None:
+            F[a, b], F[b, a] = model.F, model.F.T
+    return placing, planar, F
+
+
+@numba.njit(cache=True, nogil=True)
+def _places(members, starts, longest, view, kp, placing, planar, F, min_sine):
+    """(T, V): whether track t's members place a point in view v — none of them is in v, and one
+    has a homography to v or two have epipolar lines in v that cross at an angle whose sine is at
+    least ``min_sine``. Compiled: a window has hundreds of tracks.
+
+    Shapes: members (K,), starts (T + 1,) (:func:`gcn_match_ros.rounding.track_members`; ``longest``
+    the most members of a track); view (N,); kp (N, 2); placing, planar (V, V); F (V, V, 3, 3)
+    -> (T, V) bool."""
+    T, V = starts.shape[0] - 1, placing.shape[0]
+    out = np.zeros((T, V), np.bool_)
+    normals = np.empty((longest, 2))  # unit normals of the lines so far
+    for t in range(T):
+        for v in range(V):
+            held, point, n = False, False, 0
+            for k in range(starts[t], starts[t + 1]):
+                a = view[members[k]]
+                if a == v:
+                    held = True
+                    break
+                if not placing[a, v]:
+                    continue
+                if planar[a, v]:
+                    point = True
+                    continue
+                x, y = kp[members[k], 0], kp[members[k], 1]
+                l0 = F[a, v, 0, 0] * x + F[a, v, 0, 1] * y + F[a, v, 0, 2]
+                l1 = F[a, v, 1, 0] * x + F[a, v, 1, 1] * y + F[a, v, 1, 2]
+                norm = math.sqrt(l0 * l0 + l1 * l1)
+                if norm <= 0.0:
+                    continue
+                l0, l1 = l0 / norm, l1 / norm
+                for j in range(n):
+                    if abs(normals[j, 0] * l1 - normals[j, 1] * l0) >= min_sine:
+                        point = True
+                normals[n, 0], normals[n, 1] = l0, l1
+                n += 1
+            out[t, v] = point and not held
+    return out

@@ -41,7 +41,7 @@ from ..view_pairs import by_view_pair
 if TYPE_CHECKING:  # consistency imports this module
     from .consistency import WindowGeometry
 
-__all__ = ["MIN_EXPECTED", "MIN_CROSSING_DEG", "lines_cross", "expected_views", "placed_in", "unsupported_tracks"]
+__all__ = ["MIN_EXPECTED", "MIN_CROSSING_DEG", "expected_views", "unsupported_tracks"]
 
 #: views a track of two must be expected in (and absent from) to be unsupported
 MIN_EXPECTED = 2
@@ -49,7 +49,7 @@ MIN_EXPECTED = 2
 MIN_CROSSING_DEG = 5.0
 
 
-def placed_in(transfers: dict, geometry: "WindowGeometry", view: int, other: int, x: np.ndarray):
+def _placed_in(transfers: dict, geometry: "WindowGeometry", view: int, other: int, x: np.ndarray):
     """What the model of (view, other) makes of keypoints ``x`` (indices) of ``view`` in ``other``:
     ('point', (n, 2)) under a homography, ('line', (n, 3)) under F
     (:meth:`.consistency.WindowGeometry.transfers`, computed once per view pair into ``transfers``)."""
@@ -61,21 +61,15 @@ def placed_in(transfers: dict, geometry: "WindowGeometry", view: int, other: int
     return ("point", mapped[:, :2]) if planar else ("line", mapped)
 
 
-def lines_cross(la: np.ndarray, lb: np.ndarray) -> np.ndarray:
-    """Whether lines la[m] and lb[m] cross at MIN_CROSSING_DEG or more, so that they place a point.
-
-    Shapes: (n, 3), (n, 3) -> (n,) bool."""
-    na = la[:, :2] / np.maximum(np.linalg.norm(la[:, :2], axis=1, keepdims=True), 1e-12)
-    nb = lb[:, :2] / np.maximum(np.linalg.norm(lb[:, :2], axis=1, keepdims=True), 1e-12)
-    return np.abs(na[:, 0] * nb[:, 1] - na[:, 1] * nb[:, 0]) >= np.sin(np.radians(MIN_CROSSING_DEG))
-
-
 def _crossings(la: np.ndarray, lb: np.ndarray) -> np.ndarray:
     """Where lines la[m] and lb[m] cross (NaN where they are within MIN_CROSSING_DEG of parallel).
 
     Shapes: (n, 3), (n, 3) -> (n, 2)."""
+    na = la[:, :2] / np.maximum(np.linalg.norm(la[:, :2], axis=1, keepdims=True), 1e-12)
+    nb = lb[:, :2] / np.maximum(np.linalg.norm(lb[:, :2], axis=1, keepdims=True), 1e-12)
+    sine = np.abs(na[:, 0] * nb[:, 1] - na[:, 1] * nb[:, 0])
     x = np.cross(la, lb)
-    ok = lines_cross(la, lb) & (np.abs(x[:, 2]) > 1e-12)
+    ok = (sine >= np.sin(np.radians(MIN_CROSSING_DEG))) & (np.abs(x[:, 2]) > 1e-12)
     out = np.full((la.shape[0], 2), np.nan)
     out[ok] = x[ok, :2] / x[ok, 2:3]
     return out
@@ -109,8 +103,8 @@ def expected_views(geometry: "WindowGeometry", rows: np.ndarray, cols: np.ndarra
         for k in np.flatnonzero(verified[i] & verified[j]).tolist():
             if k in (i, j):
                 continue
-            kind_a, pa = placed_in(transfers, geometry, i, k, rows[m])
-            kind_b, pb = placed_in(transfers, geometry, j, k, cols[m])
+            kind_a, pa = _placed_in(transfers, geometry, i, k, rows[m])
+            kind_b, pb = _placed_in(transfers, geometry, j, k, cols[m])
             x = pa if kind_a == "point" else pb if kind_b == "point" else _crossings(pa, pb)
             x0, y0, x1, y1 = _bounds(geometry, k)
             with np.errstate(invalid="ignore"):
