@@ -64,3 +64,11 @@ def test_demo_on_a_bag_with_poses_maps_the_landmarks(tmp_path):
     assert found and int(found[2]) > 100 and int(found[3]) >= 2, out  # points live across windows
     img = cv2.imread(str(tmp_path / "m_landmarks.png"))
     assert img is not None and img.shape[1] > 600
+
+
+def test_a_matcher_node_not_up_in_its_start_up_time_is_a_clear_error(tmp_path):
+    # the start-up budget is the node's own (its warm-up compiles the solver once per checkout);
+    # the replay has --timeout of its own after it
+    rc, out = run_demo(tmp_path, "--solver", "nn", "--startup-timeout", "0")
+    assert rc == 1, out
+    assert "the matcher node did not start" in out

@@ -93,7 +93,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="picture path (default out/demo_matches.png)")
     p.add_argument("--data-root", type=Path, default=DATA_ROOT,
                    help="dataset root holding the bag's images (for the picture)")
-    p.add_argument("--timeout", type=float, default=90.0, help="give up after this many seconds")
+    p.add_argument("--startup-timeout", type=float, default=300.0,
+                   help="give up when the matcher node is not up after this many seconds (its warm-up compiles "
+                        "the solver once per checkout: minutes on a busy 2-core machine)")
+    p.add_argument("--timeout", type=float, default=90.0,
+                   help="give up when the replay and its scoring take longer than this many seconds")
     return p
 
 
@@ -333,7 +337,7 @@ def main(argv=None) -> int:
     player = None
     try:
         col = _Collector(domain, cameras)
-        deadline = t_start + args.timeout
+        deadline = t_start + args.startup_timeout
         up = col.spin_until(lambda: node.poll() is not None or col.session.node.count_publishers("/matcher_node/matches") > 0,
                             timeout=max(1.0, deadline - time.monotonic()))
         if node.poll() is not None or not up:
@@ -343,6 +347,7 @@ def main(argv=None) -> int:
             return 1
         _log(f"demo: matcher node up after {time.monotonic() - t_start:.1f} s; replaying {bag.name} "
              f"(rate {args.rate:g}, stamps shifted to now)")
+        deadline = time.monotonic() + args.timeout
         # Keypoints only (labels come from the bag file); each topic has two subscribers: the
         # node and the scorer here, and bag_play waits until both are matched.
         topics = [f"/{c}/keypoints" for c in cameras]
