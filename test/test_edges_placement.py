@@ -47,7 +47,7 @@ def _pairs(view_1_to_2_score):
     return rows, cols, np.r_[np.full(N, 0.9), np.full(N, view_1_to_2_score)]
 
 
-def _grown(problem, geometry, score, planar_threshold):
+def _grown(geometry, score, planar_threshold):
     rows, cols, scores = _pairs(score)
     keep, track = verified_tracks(geometry, rows, cols, scores, 0.5, planar_threshold=planar_threshold)
     assert keep.all()
@@ -55,16 +55,16 @@ def _grown(problem, geometry, score, planar_threshold):
 
 
 def test_a_keypoint_the_members_place_joins_their_track_at_the_point_to_point_threshold():
-    problem, geometry, *_ = _window(AROUND)
-    track = _grown(problem, geometry, 0.3, planar_threshold=0.2)
+    _, geometry, *_ = _window(AROUND)
+    track = _grown(geometry, 0.3, planar_threshold=0.2)
     assert (track[2 * N:] == track[:N]).all() and (track[:N] >= 0).all()  # tracks of three
     assert len(set(track.tolist())) == N
 
 
 def test_below_the_point_to_point_threshold_or_without_it_nothing_joins():
-    problem, geometry, *_ = _window(AROUND)
+    _, geometry, *_ = _window(AROUND)
     for score, planar_threshold in ((0.3, 0.4), (0.3, None), (0.1, 0.2)):
-        track = _grown(problem, geometry, score, planar_threshold)
+        track = _grown(geometry, score, planar_threshold)
         assert (track[2 * N:] < 0).all() and (track[:N] == track[N:2 * N]).all()
 
 
@@ -75,14 +75,14 @@ def test_a_keypoint_shifted_along_one_members_line_is_not_where_the_lines_cross(
     F12 = fundamental_from_poses(K, R[1], t[1], K, R[2], t[2])
     lines = homogeneous(views[1]) @ F12.T
     along = np.c_[lines[:, 1], -lines[:, 0]] / np.linalg.norm(lines[:, :2], axis=1, keepdims=True)
-    problem, geometry, *_ = _window(AROUND, keypoints=views[2] + 40.0 * along)
-    track = _grown(problem, geometry, 0.3, planar_threshold=0.2)
+    _, geometry, *_ = _window(AROUND, keypoints=views[2] + 40.0 * along)
+    track = _grown(geometry, 0.3, planar_threshold=0.2)
     assert (track[2 * N:] < 0).all()
 
 
 def test_lines_that_do_not_cross_place_nothing():
-    problem, geometry, *_ = _window(IN_A_LINE)
-    track = _grown(problem, geometry, 0.3, planar_threshold=0.2)
+    _, geometry, *_ = _window(IN_A_LINE)
+    track = _grown(geometry, 0.3, planar_threshold=0.2)
     assert (track[2 * N:] < 0).all() and (track[:N] >= 0).all()
 
 

@@ -60,14 +60,14 @@ def placed_members(geometry: "WindowGeometry", track: np.ndarray, rows: np.ndarr
     rows, cols, scores = np.asarray(rows, np.int64), np.asarray(cols, np.int64), np.asarray(scores)
     band = np.flatnonzero((scores >= low) & (scores < high))
     in_row, in_col = track[rows[band]] >= 0, track[cols[band]] >= 0
-    band = band[in_row != in_col]
+    band, from_row = band[in_row != in_col], in_row[in_row != in_col]
     if not band.size:
         return track
-    x = np.where(track[rows[band]] >= 0, rows[band], cols[band])
-    y = np.where(track[rows[band]] >= 0, cols[band], rows[band])
+    x = np.where(from_row, rows[band], cols[band])
+    y = np.where(from_row, cols[band], rows[band])
     members, starts = track_members(track)
-    view = geometry.view_index.astype(np.int64)
-    places = _places(members, starts, int(np.diff(starts).max()), view, geometry.keypoints.astype(np.float64),
+    view = np.asarray(geometry.view_index, np.int64)
+    places = _places(members, starts, int(np.diff(starts).max()), view, np.asarray(geometry.keypoints, np.float64),
                      *_directed_models(geometry), math.sin(math.radians(MIN_CROSSING_DEG)))
     t, v = track[x], view[y]
     placed = places[t, v]
